@@ -93,7 +93,7 @@ def _overlap(origin: int, size: int, extent: int) -> tuple[int, int, int, int]:
     return lo, hi, lo - origin, hi - origin
 
 
-def extract_sub_views(frame: torch.Tensor, config: SystemConfig) -> torch.Tensor:
+def extract_sub_views(frame: torch.Tensor, config: SystemConfig, margin: int = 0) -> torch.Tensor:
     """Cut the nine ``S × S`` sub-views out of a padded sensor frame.
 
     Parts of a crop that fall outside the padded frame are zero.
@@ -103,45 +103,51 @@ def extract_sub_views(frame: torch.Tensor, config: SystemConfig) -> torch.Tensor
     frame : torch.Tensor
         Padded sensor frame(s), shape ``(..., H_pad, W_pad)``.
     config : SystemConfig
+    margin : int
+        Extra pixels on every side of each crop: the crops are ``(S + 2·margin)`` square
+        and still centred on the chief rays.
 
     Returns
     -------
     torch.Tensor
-        Shape ``(..., 9, S, S)``; view ``ℓ`` is centred on chief ray ``c_ℓ``.
+        Shape ``(..., 9, S + 2·margin, S + 2·margin)``; view ``ℓ`` is centred on ``c_ℓ``.
     """
     _check_frame(frame, config.padded_shape, "padded sensor frame")
-    size = config.sub_view_size
+    size = config.sub_view_size + 2 * margin
     rows, cols = config.padded_shape
     views = frame.new_zeros(*frame.shape[:-2], N_LENSES, size, size)
-    for lens, (r0, c0) in enumerate(sub_view_origins(config)):
+    for lens, (r0, c0) in enumerate(sub_view_origins(config) - margin):
         fr0, fr1, vr0, vr1 = _overlap(int(r0), size, rows)
         fc0, fc1, vc0, vc1 = _overlap(int(c0), size, cols)
         views[..., lens, vr0:vr1, vc0:vc1] = frame[..., fr0:fr1, fc0:fc1]
     return views
 
 
-def place_sub_views(views: torch.Tensor, config: SystemConfig) -> torch.Tensor:
+def place_sub_views(views: torch.Tensor, config: SystemConfig, margin: int = 0) -> torch.Tensor:
     """Adjoint of :func:`extract_sub_views`: add each view back at its place in the frame.
 
     Parameters
     ----------
     views : torch.Tensor
-        Shape ``(..., 9, S, S)``.
+        Shape ``(..., 9, S + 2·margin, S + 2·margin)``.
     config : SystemConfig
+    margin : int
+        As in :func:`extract_sub_views`.
 
     Returns
     -------
     torch.Tensor
-        Padded frame(s) ``(..., H_pad, W_pad)``: the sum of the placed views (overlaps add).
+        Padded frame(s) ``(..., H_pad, W_pad)``: the sum of the placed views (overlaps add);
+        parts falling outside the frame are dropped.
     """
-    size = config.sub_view_size
+    size = config.sub_view_size + 2 * margin
     if views.ndim < 3 or tuple(views.shape[-3:]) != (N_LENSES, size, size):
         raise ValueError(
             f"views must have shape (..., {N_LENSES}, {size}, {size}), got {tuple(views.shape)}"
         )
     rows, cols = config.padded_shape
     frame = views.new_zeros(*views.shape[:-3], rows, cols)
-    for lens, (r0, c0) in enumerate(sub_view_origins(config)):
+    for lens, (r0, c0) in enumerate(sub_view_origins(config) - margin):
         fr0, fr1, vr0, vr1 = _overlap(int(r0), size, rows)
         fc0, fc1, vc0, vc1 = _overlap(int(c0), size, cols)
         frame[..., fr0:fr1, fc0:fc1] += views[..., lens, vr0:vr1, vc0:vc1]

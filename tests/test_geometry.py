@@ -1,0 +1,72 @@
+import numpy as np
+import pytest
+import torch
+
+from svcode_core.geometry import (
+    crop_to_sensor,
+    extract_sub_views,
+    normalized_coordinates,
+    pad_sensor_frame,
+    place_sub_views,
+    sub_view_origins,
+)
+
+
+def test_normalized_coordinates_edges_exact():
+    coords = normalized_coordinates(384)
+    assert coords[0].item() == -1.0 and coords[-1].item() == 1.0
+    assert coords[383 // 2].item() < 0 < coords[384 // 2].item()
+    tail = normalized_coordinates(384, start=380, length=8, dtype=torch.float64)
+    step = 2.0 / 383
+    np.testing.assert_allclose(np.diff(tail.numpy()), step, rtol=1e-12)
+    assert tail[-1].item() > 1.0  # padding continues the line
+
+
+def test_sub_view_centred_on_chief_ray(mini_system):
+    frame = torch.zeros(mini_system.padded_shape)
+    for lens, (r, c) in enumerate(mini_system.chief_rays):
+        frame[r, c] = lens + 1
+    views = extract_sub_views(frame, mini_system)
+    half = mini_system.sub_view_size // 2
+    for lens in range(9):
+        assert views[lens, half, half].item() == lens + 1
+
+
+@pytest.mark.parametrize("dtype, tol", [(torch.float32, 1e-5), (torch.float64, 1e-12)])
+@pytest.mark.parametrize("margin", [0, 4])
+def test_extract_place_adjoint(tiny_system, dtype, tol, margin):
+    gen = torch.Generator().manual_seed(0)
+    frame = torch.randn(2, *tiny_system.padded_shape, generator=gen, dtype=dtype)
+    size = tiny_system.sub_view_size + 2 * margin
+    views = torch.randn(2, 9, size, size, generator=gen, dtype=dtype)
+    lhs = (extract_sub_views(frame, tiny_system, margin) * views).sum()
+    rhs = (frame * place_sub_views(views, tiny_system, margin)).sum()
+    assert abs(lhs - rhs) <= tol * abs(lhs)
+
+
+@pytest.mark.parametrize("dtype, tol", [(torch.float32, 1e-5), (torch.float64, 1e-12)])
+def test_crop_pad_adjoint(tiny_system, dtype, tol):
+    gen = torch.Generator().manual_seed(1)
+    frame = torch.randn(*tiny_system.padded_shape, generator=gen, dtype=dtype)
+    sensor = torch.randn(*tiny_system.sensor_shape, generator=gen, dtype=dtype)
+    lhs = (crop_to_sensor(frame, tiny_system) * sensor).sum()
+    rhs = (frame * pad_sensor_frame(sensor, tiny_system)).sum()
+    assert abs(lhs - rhs) <= tol * abs(lhs)
+
+
+def test_out_of_frame_crops_are_zero(tiny_system):
+    shifted = tiny_system.replace(
+        chief_rays=((2, 2),) + tuple(tiny_system.chief_rays[1:])
+    )
+    views = extract_sub_views(torch.ones(shifted.padded_shape), shifted)
+    origin = sub_view_origins(shifted)[0]
+    assert (origin < 0).all()
+    assert views[0, : -origin[0]].abs().sum() == 0
+    assert views[0, -origin[0]:, -origin[1]:].min() == 1
+
+
+def test_wrong_frame_shape_raises(tiny_system):
+    with pytest.raises(ValueError, match="padded sensor frame must have shape"):
+        extract_sub_views(torch.zeros(10, 10), tiny_system)
+    with pytest.raises(ValueError, match="raw sensor frame"):
+        pad_sensor_frame(torch.zeros(10, 10), tiny_system)
