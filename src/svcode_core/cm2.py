@@ -1,0 +1,202 @@
+"""The CM² forward model: nine low-rank SV lens images, placed and cut by the sensor.
+
+``y = crop_sensor( Σ_ℓ place_ℓ( v_ℓ ) )`` with ``v_ℓ = Σ_k h_{ℓ,k} ∗ (w_{ℓ,k} ⊙ x)``
+(design.md §1). Each lens image is computed on the object grid enlarged by the kernel
+radius (``margin``), so the blur reaching past the object's edge is kept: the lens
+convolution is the full linear one. The padded frame returned by :meth:`CM2Operator.forward`
+is zero outside the sensor window, which is exactly what the reconstruction pipeline
+builds from a raw frame with :func:`~svcode_core.geometry.pad_sensor_frame`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from .config import N_LENSES, SystemConfig
+from .geometry import crop_to_sensor, extract_sub_views, place_sub_views
+from .lowrank import LowRankSVOperator, PSFDecomposition, decompose_psfs
+
+__all__ = ["CM2Operator"]
+
+
+@dataclass(frozen=True)
+class RankReport:
+    """Low-rank order and captured PSF energy of each lens."""
+
+    ranks: tuple[int, ...]
+    captured_energy: tuple[float, ...]
+
+
+class CM2Operator:
+    """Linear forward model of a CM² instrument, with its exact adjoint.
+
+    Parameters
+    ----------
+    system : SystemConfig
+        Geometry of the instrument.
+    lenses : LowRankSVOperator
+        The nine lens blurs on the object grid enlarged by ``margin`` on every side:
+        kernels ``(9, K, h, w)`` and weights ``(9, K, S + 2m, S + 2m)``.
+    margin : int
+        Enlargement of the object grid, at least the kernel radius.
+    decompositions : sequence of PSFDecomposition, optional
+        Kept for reports (rank and captured energy per lens).
+
+    Examples
+    --------
+    >>> system = SystemConfig.preset("cm2-mini")              # doctest: +SKIP
+    >>> op = CM2Operator.from_system(system)                   # doctest: +SKIP
+    >>> frame = op.forward(torch.rand(384, 384))               # padded frame, 672 × 672
+    """
+
+    def __init__(
+        self,
+        system: SystemConfig,
+        lenses: LowRankSVOperator,
+        margin: int,
+        decompositions: Sequence[PSFDecomposition] = (),
+    ) -> None:
+        size = system.sub_view_size + 2 * margin
+        if lenses.n_lenses != N_LENSES or lenses.shape != (size, size):
+            raise ValueError(
+                f"lenses must hold {N_LENSES} lenses of shape {size}×{size}, got "
+                f"{lenses.n_lenses} of shape {lenses.shape}"
+            )
+        if min(lenses.kernel_shape) // 2 > margin:
+            raise ValueError(f"margin {margin} is smaller than the kernel radius")
+        self.system = system
+        self.lenses = lenses
+        self.margin = margin
+        self.decompositions = tuple(decompositions)
+        window = torch.zeros(system.padded_shape, dtype=lenses.dtype, device=lenses.device)
+        rows, cols = system.sensor_window
+        window[rows, cols] = 1
+        self._sensor_mask = window
+        self._own_view_mask = extract_sub_views(window, system)  # (9, S, S)
+
+    # ------------------------------------------------------------ construction
+    @classmethod
+    def from_psfs(
+        cls,
+        system: SystemConfig,
+        psfs: np.ndarray,
+        rank: int | None = None,
+        tolerance: float | None = None,
+        dtype: torch.dtype = torch.float32,
+        device: torch.device | str | None = None,
+    ) -> CM2Operator:
+        """Decompose each lens's PSF grid and build the operator.
+
+        Parameters
+        ----------
+        system : SystemConfig
+        psfs : numpy.ndarray
+            ``(9, G·G, h, w)`` PSFs registered to their ideal image points.
+        rank : int, optional
+            Low-rank order ``K``; default ``system.rank``. When both are ``None`` each lens
+            uses the smallest ``K`` meeting ``tolerance`` (default ``system.rank_tolerance``).
+        tolerance : float, optional
+            Largest fraction of PSF energy left out.
+        dtype, device
+            Of the operator.
+        """
+        psfs = np.asarray(psfs)
+        if psfs.ndim != 4 or psfs.shape[0] != N_LENSES:
+            raise ValueError(f"psfs must have shape (9, G*G, h, w), got {psfs.shape}")
+        rank = system.rank if rank is None else rank
+        tolerance = system.rank_tolerance if tolerance is None else tolerance
+        decompositions = [decompose_psfs(lens_psfs, rank, tolerance) for lens_psfs in psfs]
+        margin = max(psfs.shape[-2:]) // 2
+        lenses = LowRankSVOperator.from_decomposition(
+            decompositions, system.sub_view_size, margin=margin, dtype=dtype, device=device
+        )
+        return cls(system, lenses, margin, decompositions)
+
+    @classmethod
+    def from_system(
+        cls,
+        system: SystemConfig,
+        rank: int | None = None,
+        tolerance: float | None = None,
+        dtype: torch.dtype = torch.float32,
+        device: torch.device | str | None = None,
+    ) -> CM2Operator:
+        """The operator of ``system`` with PSFs from its pupil model (:mod:`.optics`)."""
+        from .optics import system_psfs
+
+        return cls.from_psfs(system, system_psfs(system), rank, tolerance, dtype, device)
+
+    # --------------------------------------------------------------- reports
+    @property
+    def rank(self) -> int:
+        """Low-rank order ``K`` (the largest over lenses)."""
+        return self.lenses.rank
+
+    def rank_report(self) -> RankReport:
+        """Rank and captured PSF energy of every lens."""
+        return RankReport(
+            ranks=tuple(d.rank for d in self.decompositions),
+            captured_energy=tuple(d.energy_fraction for d in self.decompositions),
+        )
+
+    # ---------------------------------------------------------------- algebra
+    def _check_object(self, x: torch.Tensor) -> None:
+        size = self.system.sub_view_size
+        if not isinstance(x, torch.Tensor):
+            raise TypeError(f"object must be a torch.Tensor, got {type(x).__name__}")
+        if x.ndim < 2 or tuple(x.shape[-2:]) != (size, size):
+            raise ValueError(f"object must have shape (..., {size}, {size}), got {tuple(x.shape)}")
+
+    def _enlarge(self, x: torch.Tensor) -> torch.Tensor:
+        m = self.margin
+        return torch.nn.functional.pad(x, (m, m, m, m))
+
+    def _shrink(self, x: torch.Tensor) -> torch.Tensor:
+        m = self.margin
+        return x[..., m : x.shape[-2] - m, m : x.shape[-1] - m]
+
+    def lens_blur(self, x: torch.Tensor) -> torch.Tensor:
+        """The nine blurred lens images on the enlarged grid, ``(..., 9, S+2m, S+2m)``."""
+        self._check_object(x)
+        return self.lenses.forward(self._enlarge(x))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Noiseless padded sensor frame of object ``x``.
+
+        Parameters
+        ----------
+        x : torch.Tensor
+            Object(s) ``(..., S, S)``.
+
+        Returns
+        -------
+        torch.Tensor
+            ``(..., H_pad, W_pad)``, zero outside the sensor window.
+        """
+        frame = place_sub_views(self.lens_blur(x), self.system, self.margin)
+        return frame * self._sensor_mask
+
+    __call__ = forward
+
+    def adjoint(self, y: torch.Tensor) -> torch.Tensor:
+        """Adjoint of :meth:`forward`: padded frame(s) ``(..., H_pad, W_pad)`` → ``(..., S, S)``."""
+        views = extract_sub_views(y * self._sensor_mask, self.system, self.margin)
+        return self._shrink(self.lenses.adjoint(views))
+
+    def measure(self, x: torch.Tensor) -> torch.Tensor:
+        """Noiseless raw sensor frame(s) ``(..., *sensor_shape)`` of object ``x``."""
+        return crop_to_sensor(self.forward(x), self.system)
+
+    def lens_images(self, x: torch.Tensor) -> torch.Tensor:
+        """The demixing targets: what each lens alone puts inside its own sub-view.
+
+        Lens ``ℓ``'s noiseless image, cut to sub-view ``ℓ`` and truncated by the sensor
+        like the measurement, shape ``(..., 9, S, S)``. Placing these nine images back
+        reproduces the measurement inside each lens's own sub-view, minus the crosstalk
+        of the other lenses.
+        """
+        return self._shrink(self.lens_blur(x)) * self._own_view_mask

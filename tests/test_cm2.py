@@ -1,0 +1,113 @@
+import numpy as np
+import pytest
+import torch
+
+from svcode_core.cm2 import CM2Operator
+from svcode_core.geometry import extract_sub_views, sub_view_origins
+
+
+def gaussian_psfs(system, widths=(0.8, 2.0)) -> np.ndarray:
+    """Smoothly field-dependent, elongated Gaussian PSFs on the system's grid, per lens."""
+    k = system.optics.kernel_size
+    grid = system.optics.psf_grid
+    axis = np.arange(k) - k // 2
+    yy, xx = np.meshgrid(axis, axis, indexing="ij")
+    coords = np.linspace(-1, 1, grid)
+    psfs = np.zeros((9, grid * grid, k, k))
+    for lens in range(9):
+        for g, (v, u) in enumerate((v, u) for v in coords for u in coords):
+            sy = widths[0] + (widths[1] - widths[0]) * abs(v) * (1 + lens / 9)
+            sx = widths[0] + (widths[1] - widths[0]) * abs(u)
+            psf = np.exp(-0.5 * ((yy / sy) ** 2 + (xx / sx) ** 2))
+            psfs[lens, g] = psf / psf.sum() * (1 - 0.3 * (v * v + u * u) / 2)
+    return psfs
+
+
+def delta_psfs(system) -> np.ndarray:
+    k = system.optics.kernel_size
+    psfs = np.zeros((9, system.optics.psf_grid**2, k, k))
+    psfs[..., k // 2, k // 2] = 1.0
+    return psfs
+
+
+@pytest.mark.parametrize("dtype, tol", [(torch.float32, 1e-5), (torch.float64, 1e-12)])
+def test_adjoint_dot_product(tiny_system, dtype, tol):
+    op = CM2Operator.from_psfs(tiny_system, gaussian_psfs(tiny_system), rank=3, dtype=dtype)
+    gen = torch.Generator().manual_seed(0)
+    size = tiny_system.sub_view_size
+    x = torch.rand(2, size, size, generator=gen, dtype=dtype)
+    y = torch.randn(2, *tiny_system.padded_shape, generator=gen, dtype=dtype)
+    lhs = (op.forward(x) * y).sum()
+    rhs = (x * op.adjoint(y)).sum()
+    assert abs(lhs - rhs) <= tol * abs(lhs)
+
+
+def test_point_source_gives_nine_spots_at_chief_rays(tiny_system):
+    op = CM2Operator.from_psfs(tiny_system, delta_psfs(tiny_system), dtype=torch.float64)
+    size = tiny_system.sub_view_size
+    r = (5, -7)  # offset from the object centre, pixels
+    x = torch.zeros(size, size, dtype=torch.float64)
+    x[size // 2 + r[0], size // 2 + r[1]] = 1.0
+    frame = op.forward(x)
+    spots = {tuple(p) for p in torch.nonzero(frame > 1e-9).tolist()}  # FFT round-off aside
+    window_rows, window_cols = tiny_system.sensor_window
+    expected = set()
+    for c in tiny_system.chief_rays:
+        p = (c[0] + r[0], c[1] + r[1])
+        if window_rows.start <= p[0] < window_rows.stop and window_cols.start <= p[1] < window_cols.stop:
+            expected.add(p)
+    assert spots == expected
+    assert len(expected) == 9  # a central point is seen by every lens
+
+
+def test_edge_point_seen_by_fewer_lenses(tiny_system):
+    op = CM2Operator.from_psfs(tiny_system, delta_psfs(tiny_system), dtype=torch.float64)
+    x = torch.zeros(tiny_system.sub_view_size, tiny_system.sub_view_size, dtype=torch.float64)
+    x[0, 0] = 1.0  # the object corner: the outer lenses image it off the sensor
+    assert 0 < int((op.forward(x) > 1e-9).sum()) < 9
+
+
+def test_lens_images_are_the_own_view_parts(tiny_system):
+    op = CM2Operator.from_psfs(tiny_system, gaussian_psfs(tiny_system), dtype=torch.float64)
+    x = torch.rand(tiny_system.sub_view_size, tiny_system.sub_view_size, dtype=torch.float64)
+    targets = op.lens_images(x)
+    views = extract_sub_views(op.forward(x), tiny_system)
+    # each view holds its own lens image plus non-negative crosstalk from the others
+    assert torch.all(views - targets >= -1e-12)
+    assert torch.all(targets >= -1e-12)
+    # the central lens's sub-view is fully inside the sensor
+    origin = sub_view_origins(tiny_system)[4]
+    assert origin.min() >= 0
+
+
+def test_blur_past_object_edge_is_kept(tiny_system):
+    op = CM2Operator.from_psfs(tiny_system, gaussian_psfs(tiny_system), dtype=torch.float64)
+    x = torch.ones(tiny_system.sub_view_size, tiny_system.sub_view_size, dtype=torch.float64)
+    blur = op.lens_blur(x)
+    assert blur[4, :, : op.margin].sum() > 0  # light outside the object grid
+
+
+def test_extreme_objects(tiny_system):
+    op = CM2Operator.from_psfs(tiny_system, gaussian_psfs(tiny_system), dtype=torch.float32)
+    size = tiny_system.sub_view_size
+    assert op.forward(torch.zeros(size, size)).abs().max() == 0
+    x = torch.rand(size, size, generator=torch.Generator().manual_seed(3))
+    big = op.forward(1e6 * x)
+    assert torch.isfinite(big).all()
+    torch.testing.assert_close(big / 1e6, op.forward(x), rtol=1e-5, atol=1e-6)
+    bad = x.clone()
+    bad[3, 3] = float("nan")
+    with pytest.raises(ValueError, match="NaN or Inf"):
+        op.forward(bad)
+    with pytest.raises(ValueError, match="object must have shape"):
+        op.forward(torch.zeros(size + 1, size))
+
+
+def test_zero_energy_psf_is_harmless(tiny_system):
+    psfs = gaussian_psfs(tiny_system)
+    psfs[3] = 0.0  # a lens whose PSFs are truncated away completely
+    op = CM2Operator.from_psfs(tiny_system, psfs, dtype=torch.float64)
+    x = torch.rand(tiny_system.sub_view_size, tiny_system.sub_view_size, dtype=torch.float64)
+    assert torch.isfinite(op.forward(x)).all()
+    assert op.lens_images(x)[3].abs().max() == 0
+    assert torch.isfinite(op.adjoint(op.forward(x))).all()
