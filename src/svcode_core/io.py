@@ -18,7 +18,7 @@ import tifffile
 
 from .config import SystemConfig
 
-__all__ = ["read_tiff", "system_beside", "write_json_atomic", "write_tiff"]
+__all__ = ["read_tiff", "system_beside", "tiff_metadata", "write_json_atomic", "write_tiff"]
 
 METADATA_KEY = "svcode"
 
@@ -62,7 +62,10 @@ def write_tiff(
         meta.update(extra)
     json.dumps(meta)  # fail here, before writing, on non-serialisable metadata
     partial = path.with_name(path.name + ".partial")
-    tifffile.imwrite(partial, np.asarray(array, dtype=np.float32), metadata={METADATA_KEY: meta})
+    tifffile.imwrite(
+        partial, np.asarray(array, dtype=np.float32), photometric="minisblack",
+        metadata={METADATA_KEY: meta},
+    )
     os.replace(partial, path)
     return path
 
@@ -95,11 +98,21 @@ def read_tiff(path: str | Path) -> tuple[np.ndarray, SystemConfig | None, dict[s
         raise FileNotFoundError(f"no such file: {path}")
     with tifffile.TiffFile(path) as tif:
         array = tif.asarray()
-        shaped = tif.shaped_metadata or ({},)
-    meta = dict(shaped[0].get(METADATA_KEY, {})) if shaped and shaped[0] else {}
-    system_dict = meta.pop("system", None)
-    system = SystemConfig.from_dict(system_dict) if system_dict else system_beside(path)
+        system, meta = tiff_metadata(tif)
     return array, system, meta
+
+
+def tiff_metadata(tif: tifffile.TiffFile) -> tuple[SystemConfig | None, dict[str, Any]]:
+    """The system and the other ``svcode`` metadata of an open TIFF.
+
+    The system comes from the file's description, else from ``system.json`` beside it.
+    """
+    shaped = tif.shaped_metadata or ({},)
+    meta = dict((shaped[0] or {}).get(METADATA_KEY, {}))
+    system_dict = meta.pop("system", None)
+    if system_dict:
+        return SystemConfig.from_dict(system_dict), meta
+    return system_beside(tif.filehandle.path), meta
 
 
 def write_json_atomic(path: str | Path, data: Any) -> Path:

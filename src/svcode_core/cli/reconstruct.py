@@ -1,0 +1,117 @@
+"""``svcode reconstruct``: reconstruct a raw CM² frame or stack into a TIFF."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from ..config import load_system
+from ..parallel import ReconstructorSpec
+from ..reconstruct import PRECISIONS
+from ..stream import FrameReader, reconstruct_file
+
+METHODS = ("svcode",)
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    """Register ``svcode reconstruct``."""
+    parser = subparsers.add_parser(
+        "reconstruct",
+        help="reconstruct a raw CM² frame or frame stack",
+        description=(
+            "Reconstruct a raw sensor frame (H×W) into an S×S float32 TIFF, or a stack "
+            "(T×H×W) into T×S×S, streamed frame by frame. An interrupted run resumes when "
+            "rerun with the same arguments. Frames run in parallel on a dask cluster with "
+            "--workers or --scheduler."
+        ),
+    )
+    parser.add_argument("input", type=Path, metavar="MEAS.tif", help="raw frame or stack")
+    parser.add_argument("--out", type=Path, required=True, help="output TIFF")
+    parser.add_argument(
+        "--method",
+        default="svcode",
+        choices=METHODS,
+        help="reconstruction method (default: svcode)",
+    )
+    parser.add_argument(
+        "--system",
+        help="system JSON or preset name (default: the one stored in the "
+        "input TIFF, else system.json beside it)",
+    )
+    parser.add_argument("--weights", type=Path, help="trained SV-CoDe model")
+    parser.add_argument(
+        "--views", type=Path, metavar="VIEWS.tif", help="also write the nine demixed views"
+    )
+    parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or mps")
+    parser.add_argument("--precision", default="fp32", choices=sorted(PRECISIONS))
+    parser.add_argument("--tile", type=int, help="tile size P (default: the system's patch size)")
+    parser.add_argument("--stride", type=int, help="tile stride (default: P/2)")
+    parser.add_argument("--batch-size", type=int, default=8, help="tiles per model call")
+    parser.add_argument(
+        "--no-skip", action="store_true", help="run every tile, also those without signal"
+    )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=0,
+        help="reconstruct frames on a local dask cluster of N processes",
+    )
+    parser.add_argument(
+        "--scheduler", metavar="ADDRESS", help="use an existing dask cluster, e.g. tcp://host:8786"
+    )
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.set_defaults(func=run)
+
+
+def _system(args: argparse.Namespace):
+    if args.system:
+        return load_system(args.system)
+    with FrameReader(args.input) as reader:
+        if reader.system is None:
+            raise ValueError(
+                f"{args.input.name}: no system configuration in the file or in a system.json "
+                "beside it; pass --system FILE.json or a preset name"
+            )
+        return reader.system
+
+
+def run(args: argparse.Namespace) -> int:
+    """Reconstruct ``args.input`` into ``args.out``; print a one-line summary."""
+    if args.weights is None:
+        raise ValueError("no bundled model yet; pass --weights FILE")
+    if not args.weights.is_file():
+        raise FileNotFoundError(f"weights not found: {args.weights}")
+    if args.workers < 0:
+        raise ValueError(f"--workers must be >= 0, got {args.workers}")
+    system = _system(args)
+    options = {
+        "device": args.device,
+        "precision": args.precision,
+        "tile_size": args.tile,
+        "stride": args.stride,
+        "batch_size": args.batch_size,
+        "skip_empty": not args.no_skip,
+    }
+    spec = ReconstructorSpec(str(args.weights), system, options)
+    start = time.perf_counter()
+    summary = reconstruct_file(
+        args.input,
+        args.out,
+        spec,
+        system=system,
+        views_path=args.views,
+        settings=spec.describe(),
+        workers=args.workers,
+        scheduler=args.scheduler,
+        progress=not args.quiet,
+    )
+    seconds = time.perf_counter() - start
+    resumed = summary.frames - summary.computed
+    print(
+        f"reconstructed {summary.computed} frame(s)"
+        + (f" ({resumed} resumed from an earlier run)" if resumed else "")
+        + f" in {seconds:.2f} s; tiles run {summary.tiles_run}, skipped {summary.tiles_skipped}"
+        f" -> {args.out}"
+    )
+    return 0

@@ -1,0 +1,341 @@
+"""Reconstruct raw CM² frames with a trained SV-CoDe model, tile by tile.
+
+:class:`Reconstructor` takes a raw sensor frame ``(H, W)`` (``system.sensor_shape``) or a
+stack ``(T, H, W)``, validates it, zero-pads it, cuts the nine ``S × S`` sub-views, runs
+the model over overlapping tiles (see :mod:`svcode_core.tiling`) and returns the
+reconstruction, optionally the nine demixed views, the time spent in each stage and the
+tile counters.
+
+Input handling
+    NaN or Inf, a frame of the wrong size, an empty stack or a wrong number of dimensions
+    raise :class:`ValueError` naming the problem. Negative values (left by dark-frame
+    subtraction) are **clipped at 0** before the model: the training measurements are
+    non-negative sensor readings, so the model has never seen negative input.
+
+Devices and precision
+    ``device`` is ``"cpu"``, ``"cuda"`` / ``"cuda:N"`` or ``"mps"``; an unavailable one is a
+    clear error. ``precision`` ``"fp32"`` runs as is; ``"bf16"`` and ``"fp16"`` run under
+    :func:`torch.autocast`. ``"fp16"`` on the CPU is refused (PyTorch's CPU half-precision
+    kernels are slow and partly missing): use ``"bf16"`` there. Inputs and outputs stay on
+    the host; only one batch of tiles is on the device at a time.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import threading
+import time
+from collections.abc import Generator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from .config import SystemConfig
+from .geometry import extract_sub_views, pad_sensor_frame
+from .noise import noise_floor
+from .tiling import (
+    DEFAULT_SKIP_FACTOR,
+    TileGrid,
+    TileProgress,
+    exhaust,
+    iter_tiled,
+    tiles_with_signal,
+)
+
+__all__ = [
+    "PRECISIONS",
+    "FrameProgress",
+    "ReconstructionResult",
+    "Reconstructor",
+    "check_frame_shape",
+    "resolve_device",
+]
+
+PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}
+
+
+def resolve_device(device: str | torch.device) -> torch.device:
+    """A :class:`torch.device` for ``device``, or a clear error when it is unavailable."""
+    try:
+        resolved = torch.device(device)
+    except (RuntimeError, TypeError) as err:
+        raise ValueError(f"device: {device!r} is not a device name ({err})") from None
+    if resolved.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError("device: CUDA is not available (no GPU, or PyTorch built without CUDA)")
+    if resolved.type == "cuda" and resolved.index is not None:
+        if resolved.index >= torch.cuda.device_count():
+            raise ValueError(
+                f"device: {device} does not exist ({torch.cuda.device_count()} CUDA devices)"
+            )
+    if resolved.type == "mps" and not torch.backends.mps.is_available():
+        raise ValueError("device: MPS (Apple GPU) is not available on this machine")
+    if resolved.type not in ("cpu", "cuda", "mps"):
+        raise ValueError(f"device: {device!r} is not supported; use cpu, cuda or mps")
+    return resolved
+
+
+def check_frame_shape(shape: tuple[int, ...], system: SystemConfig) -> None:
+    """Raise :class:`ValueError` unless ``shape`` is the raw sensor size of ``system``."""
+    expected = tuple(system.sensor_shape)
+    if tuple(shape) == expected:
+        return
+    got = "×".join(map(str, shape))
+    hint = ""
+    if tuple(shape) == tuple(system.padded_shape):
+        hint = " (this is the padded size: pass the raw, unpadded sensor frame)"
+    raise ValueError(
+        f"frame is {got} pixels but system {system.name!r} expects raw sensor frames of "
+        f"{expected[0]}×{expected[1]}{hint}; check that the system configuration "
+        "(--system, or the one stored with the data) matches the input"
+    )
+
+
+@dataclass(frozen=True)
+class FrameProgress:
+    """Progress of a reconstruction: frame ``frame`` of ``frames``, tiles of that frame."""
+
+    frame: int
+    frames: int
+    tiles_done: int
+    tiles_total: int
+
+
+@dataclass
+class ReconstructionResult:
+    """What :meth:`Reconstructor.reconstruct` returns.
+
+    Attributes
+    ----------
+    reconstruction : numpy.ndarray
+        ``(S, S)`` for a frame, ``(T, S, S)`` for a stack; float32.
+    views : numpy.ndarray or None
+        Demixed views ``(9, S, S)`` or ``(T, 9, S, S)`` when requested.
+    timings : dict
+        Seconds per stage, summed over frames: ``prepare`` (checks, padding, sub-views,
+        skip test), ``model`` (inside the network), ``blend`` (the rest of the tiling loop)
+        and ``total``.
+    tiles_total, tiles_run, tiles_skipped : int
+        Summed over frames.
+    """
+
+    reconstruction: np.ndarray
+    views: np.ndarray | None
+    timings: dict[str, float] = field(default_factory=dict)
+    tiles_total: int = 0
+    tiles_run: int = 0
+    tiles_skipped: int = 0
+
+
+def _relay(
+    tiled: Generator[TileProgress, None, Any], index: int, count: int
+) -> Generator[FrameProgress, None, Any]:
+    """Re-yield a frame's tile progress as :class:`FrameProgress`; return its output."""
+    while True:
+        try:
+            progress = next(tiled)
+        except StopIteration as stop:
+            return stop.value
+        try:
+            yield FrameProgress(index, count, progress.done, progress.total)
+        except GeneratorExit:
+            tiled.close()
+            raise
+
+
+class Reconstructor:
+    """Tiled SV-CoDe reconstruction of raw CM² frames.
+
+    Parameters
+    ----------
+    model : torch.nn.Module
+        ``model(views (B, 9, P, P), origins (B, 2) long, sub_view_size) ->
+        (demixed (B, 9, P, P), reconstruction (B, 1, P, P))``.
+    system : SystemConfig
+        The instrument the frames come from (and the model was trained for).
+    device : str
+        ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or ``"mps"``.
+    precision : {"fp32", "bf16", "fp16"}
+    tile_size : int, optional
+        Tile side ``P``; default ``system.patch_size``.
+    stride : int, optional
+        Default ``system.patch_stride`` when ``tile_size`` is not given, else ``tile_size // 2``.
+    batch_size : int
+        Tiles per model call.
+    skip_empty : bool
+        Skip tiles without signal (see :mod:`svcode_core.tiling`).
+    skip_factor : float
+        ``k`` of the skip threshold ``dark_offset + k · noise_floor``.
+
+    Examples
+    --------
+    >>> rec = Reconstructor.from_weights("model.safetensors", device="cuda")  # doctest: +SKIP
+    >>> result = rec(raw_frame)  # doctest: +SKIP
+    >>> result.reconstruction.shape, result.tiles_skipped  # doctest: +SKIP
+    ((384, 384), 12)
+    """
+
+    def __init__(
+        self,
+        model: torch.nn.Module,
+        system: SystemConfig,
+        device: str | torch.device = "cpu",
+        precision: str = "fp32",
+        tile_size: int | None = None,
+        stride: int | None = None,
+        batch_size: int = 8,
+        skip_empty: bool = True,
+        skip_factor: float = DEFAULT_SKIP_FACTOR,
+    ) -> None:
+        if not isinstance(system, SystemConfig):
+            raise TypeError(f"system must be a SystemConfig, got {type(system).__name__}")
+        self.system = system.validate()
+        self.device = resolve_device(device)
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision: {precision!r} is not one of {sorted(PRECISIONS)}")
+        if precision == "fp16" and self.device.type == "cpu":
+            raise ValueError("precision: fp16 is not supported on the CPU; use bf16 or fp32")
+        self.precision = precision
+        if tile_size is None:
+            tile_size = system.patch_size
+            stride = system.patch_stride if stride is None else stride
+        elif stride is None:
+            stride = max(tile_size // 2, 1)
+        self.grid = TileGrid(system.sub_view_size, tile_size, stride)
+        if not isinstance(batch_size, int) or batch_size < 1:
+            raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
+        self.batch_size = batch_size
+        if not math.isfinite(skip_factor) or skip_factor < 0:
+            raise ValueError(f"skip_factor must be a finite number >= 0, got {skip_factor!r}")
+        self.skip_empty = skip_empty
+        self.skip_threshold = system.noise.dark_offset + skip_factor * noise_floor(system.noise)
+        self.model = model.to(self.device).eval()
+
+    @classmethod
+    def from_weights(
+        cls, path: str | Path, system: SystemConfig | None = None, **options: Any
+    ) -> Reconstructor:
+        """Load a trained model (and its system, unless given) and wrap it.
+
+        ``options`` are those of the constructor (``device``, ``precision`` ...).
+        """
+        from .network import load_model
+
+        model, system = load_model(path, system=system, device=options.get("device", "cpu"))
+        return cls(model, system, **options)
+
+    # ------------------------------------------------------------------ input
+    def _check_input(self, frames: Any) -> np.ndarray:
+        """The input as a ``(T, H, W)`` array (a view where possible), validated for shape."""
+        array = np.asarray(frames)
+        if array.dtype.kind not in "biuf":
+            raise ValueError(f"frames must hold real numbers, got dtype {array.dtype}")
+        if array.ndim not in (2, 3):
+            raise ValueError(
+                "expected a raw sensor frame (H×W) or a stack (T×H×W), "
+                f"got an array of shape {array.shape}"
+            )
+        stack = array[None] if array.ndim == 2 else array
+        if stack.shape[0] == 0:
+            raise ValueError("the frame stack is empty (0 frames)")
+        check_frame_shape(stack.shape[1:], self.system)
+        return stack
+
+    def prepare(self, frame: np.ndarray, index: int = 0) -> np.ndarray:
+        """One raw frame → its nine sub-views ``(9, S, S)`` float32 (checked, clipped at 0)."""
+        values = np.asarray(frame, dtype=np.float32)
+        bad = values.size - int(np.isfinite(values).sum())
+        if bad:
+            raise ValueError(f"frame {index} holds {bad} NaN or Inf values")
+        values = np.maximum(values, 0.0)
+        padded = pad_sensor_frame(torch.from_numpy(values), self.system)
+        return np.ascontiguousarray(extract_sub_views(padded, self.system).numpy())
+
+    # ------------------------------------------------------------------ model
+    def _autocast(self) -> contextlib.AbstractContextManager:
+        if self.precision == "fp32":
+            return contextlib.nullcontext()
+        return torch.autocast(self.device.type, dtype=PRECISIONS[self.precision])
+
+    def _run_batch(
+        self, tiles: np.ndarray, origins: np.ndarray, want_views: bool
+    ) -> tuple[np.ndarray | None, np.ndarray]:
+        with torch.inference_mode(), self._autocast():
+            inputs = torch.from_numpy(tiles).to(self.device)
+            where = torch.from_numpy(np.ascontiguousarray(origins)).to(self.device)
+            demixed, recon = self.model(inputs, where, self.system.sub_view_size)
+        views = demixed.float().cpu().numpy() if want_views else None
+        return views, recon.float().cpu().numpy()
+
+    # ---------------------------------------------------------------- running
+    def iter_reconstruct(
+        self,
+        frames: Any,
+        return_views: bool = False,
+        cancel: threading.Event | None = None,
+    ) -> Generator[FrameProgress, None, ReconstructionResult]:
+        """Generator form of :meth:`reconstruct`: yields progress after every batch of tiles.
+
+        Stop it with ``.close()`` or by setting ``cancel`` (then
+        :class:`~svcode_core.tiling.Cancelled` is raised); the result is the generator's
+        return value.
+        """
+        stack = self._check_input(frames)
+        single = np.asarray(frames).ndim == 2
+        count, size = stack.shape[0], self.system.sub_view_size
+        recon = np.empty((count, size, size), dtype=np.float32)
+        views = np.empty((count, 9, size, size), dtype=np.float32) if return_views else None
+        result = ReconstructionResult(recon, views)
+        timings = dict.fromkeys(("prepare", "model", "blend", "total"), 0.0)
+        start_all = time.perf_counter()
+
+        def run(tiles: np.ndarray, origins: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+            return self._run_batch(tiles, origins, return_views)
+
+        for index in range(count):
+            start = time.perf_counter()
+            sub_views = self.prepare(stack[index], index)
+            active = None
+            if self.skip_empty:
+                active = tiles_with_signal(sub_views, self.grid, self.skip_threshold)
+            timings["prepare"] += time.perf_counter() - start
+            start = time.perf_counter()
+            tiled = iter_tiled(
+                run, sub_views, self.grid, self.batch_size, active, return_views, cancel
+            )
+            output = yield from _relay(tiled, index, count)
+            timings["model"] += output.model_seconds
+            timings["blend"] += time.perf_counter() - start - output.model_seconds
+            recon[index] = output.reconstruction
+            if views is not None:
+                views[index] = output.views
+            result.tiles_run += output.tiles_run
+            result.tiles_skipped += output.tiles_skipped
+        result.tiles_total = result.tiles_run + result.tiles_skipped
+        timings["total"] = time.perf_counter() - start_all
+        result.timings = timings
+        if single:
+            result.reconstruction = recon[0]
+            result.views = None if views is None else views[0]
+        return result
+
+    def reconstruct(self, frames: Any, return_views: bool = False) -> ReconstructionResult:
+        """Reconstruct a raw frame ``(H, W)`` or a stack ``(T, H, W)``.
+
+        Parameters
+        ----------
+        frames : array_like
+            Raw sensor reading(s) of shape ``system.sensor_shape`` (or a stack of them).
+        return_views : bool
+            Also return the nine demixed views of every frame.
+
+        Returns
+        -------
+        ReconstructionResult
+        """
+        return exhaust(self.iter_reconstruct(frames, return_views))
+
+    __call__ = reconstruct
