@@ -10,7 +10,7 @@ import argparse
 import importlib
 import sys
 
-COMMANDS = ("simulate", "demo")
+COMMANDS = ("simulate", "reconstruct", "demo")
 
 
 def build_parser() -> argparse.ArgumentParser:
