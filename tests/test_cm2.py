@@ -54,7 +54,9 @@ def test_point_source_gives_nine_spots_at_chief_rays(tiny_system):
     expected = set()
     for c in tiny_system.chief_rays:
         p = (c[0] + r[0], c[1] + r[1])
-        if window_rows.start <= p[0] < window_rows.stop and window_cols.start <= p[1] < window_cols.stop:
+        on_sensor = window_rows.start <= p[0] < window_rows.stop
+        on_sensor &= window_cols.start <= p[1] < window_cols.stop
+        if on_sensor:
             expected.add(p)
     assert spots == expected
     assert len(expected) == 9  # a central point is seen by every lens

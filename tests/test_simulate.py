@@ -1,11 +1,11 @@
 import numpy as np
 import pytest
 import torch
+from test_cm2 import gaussian_psfs
 
 from svcode_core.cm2 import CM2Operator
 from svcode_core.io import read_tiff
 from svcode_core.simulate import Simulator
-from test_cm2 import gaussian_psfs
 
 
 @pytest.fixture

@@ -134,7 +134,9 @@ class OpticsConfig:
                 _fail(f"{prefix}.{name}", f"must be a finite number, got {value!r}")
         _check_positive(f"{prefix}.vignetting_angle", self.vignetting_angle, allow_zero=True)
         if self.vignetting_angle >= 90:
-            _fail(f"{prefix}.vignetting_angle", f"must be < 90 degrees, got {self.vignetting_angle}")
+            _fail(
+                f"{prefix}.vignetting_angle", f"must be < 90 degrees, got {self.vignetting_angle}"
+            )
         _check_positive(f"{prefix}.pupil_clip", self.pupil_clip, allow_zero=True)
 
 
@@ -179,7 +181,9 @@ class NoiseConfig:
 
 def _lattice(centre: tuple[float, float], pitch: float) -> tuple[tuple[float, float], ...]:
     return tuple(
-        (centre[0] + (i - 1) * pitch, centre[1] + (j - 1) * pitch) for i in range(3) for j in range(3)
+        (centre[0] + (i - 1) * pitch, centre[1] + (j - 1) * pitch)
+        for i in range(3)
+        for j in range(3)
     )
 
 
