@@ -112,9 +112,9 @@ class OpticsConfig:
     pupil_samples: int = 64
     field_radius: float = 1.75
     spherical: float = 0.1
-    coma: float = 0.6
-    astigmatism: float = 0.8
-    field_curvature: float = 0.8
+    coma: float = 0.3
+    astigmatism: float = 0.4
+    field_curvature: float = 0.3
     distortion: float = 2.0
     vignetting_angle: float = 25.0
     pupil_clip: float = 0.6
@@ -451,7 +451,7 @@ def _cm2_v2() -> SystemConfig:
         pitch=900,
         patch_size=480,
         optics=OpticsConfig(psf_grid=9, kernel_size=129, airy_radius=8.0, pupil_samples=128,
-                            distortion=12.0),
+                            distortion=8.0),
         rank_tolerance=1e-2,
     )
 
