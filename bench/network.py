@@ -1,0 +1,171 @@
+"""Benchmark of the SV-CoDe network: parameters, latency and peak memory per tile.
+
+Two scales:
+  * ``cm2-mini``: ``ModelConfig.mini()``, a batch of 4 tiles of 96 × 96 (S = 384);
+  * ``paper``: ``ModelConfig.reference()``, one tile of 480 × 480 (S = 2400).
+
+Three variants each: the plain NAFNet of the same widths (``coord_gate=False``), SV-CoDe
+with masks computed on every call, and SV-CoDe with the mask cache warm (the tile grid was
+seen once before, as for every frame after the first of a stack). Inference is under
+``torch.inference_mode``; latency is the median of ``--iters`` calls after one warm-up call.
+
+Peak memory: every variant runs in a fresh process; a sampling thread reads the process
+resident set size (psutil) every 2 ms and the peak above the level just before the first
+call is reported (it includes the mask cache). ``tracemalloc`` cannot see torch's
+allocations, hence RSS. Results go to bench/results/network.json and network.md.
+
+Run: ``OMP_NUM_THREADS=2 python bench/network.py [--iters 5] [--paper-iters 2] [--scales ...]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import psutil
+import torch
+
+from svcode_core.network import ModelConfig, SVCoDe
+
+RESULTS = Path(__file__).parent / "results"
+SCALES = {
+    "cm2-mini": {"config": "mini", "tile": 96, "batch": 4, "sub_view": 384, "stride": 48},
+    "paper": {"config": "reference", "tile": 480, "batch": 1, "sub_view": 2400, "stride": 240},
+}
+VARIANTS = ("plain", "uncached", "cached")
+
+
+class PeakRSS:
+    """Peak resident memory above the level at entry, sampled by a thread."""
+
+    def __enter__(self) -> PeakRSS:
+        self._process = psutil.Process()
+        self.base = self.peak = self._process.memory_info().rss
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._sample, daemon=True)
+        self._thread.start()
+        return self
+
+    def _sample(self) -> None:
+        while not self._stop.is_set():
+            self.peak = max(self.peak, self._process.memory_info().rss)
+            time.sleep(0.002)
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    @property
+    def megabytes(self) -> float:
+        return (self.peak - self.base) / 2**20
+
+
+def measure(scale: str, variant: str, iters: int, threads: int) -> dict:
+    """One variant in this process: latency (median, s) and peak memory (MiB)."""
+    torch.set_num_threads(threads)
+    spec = SCALES[scale]
+    config = getattr(ModelConfig, spec["config"])()
+    if variant == "plain":
+        config = config.replace(coord_gate=False)
+    torch.manual_seed(0)
+    model = SVCoDe(config).eval()
+    tile, batch = spec["tile"], spec["batch"]
+    views = torch.rand(batch, 9, tile, tile)
+    origins = [[(i // 2) * spec["stride"], (i % 2) * spec["stride"]] for i in range(batch)]
+    if variant == "cached":
+        model.cache_masks(max_bytes=16 * 2**30)
+    times = []
+    with PeakRSS() as rss, torch.inference_mode():
+        model(views, origins, spec["sub_view"])  # warm-up (fills the cache)
+        for _ in range(iters):
+            start = time.perf_counter()
+            model(views, origins, spec["sub_view"])
+            times.append(time.perf_counter() - start)
+    info = model.mask_cache_info()
+    return {
+        "scale": scale,
+        "variant": variant,
+        "parameters": sum(p.numel() for p in model.parameters()),
+        "mlp_parameters": sum(p.numel() for n, p in model.named_parameters() if ".mlp." in n),
+        "latency_s": statistics.median(times),
+        "peak_mib": rss.megabytes,
+        "cache_mib": info["bytes"] / 2**20,
+        "tile": tile,
+        "batch": batch,
+        "threads": threads,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--iters", type=int, default=5, help="timed calls, cm2-mini tile")
+    parser.add_argument("--paper-iters", type=int, default=2, help="timed calls, paper tile")
+    parser.add_argument("--threads", type=int, default=torch.get_num_threads())
+    parser.add_argument("--scales", nargs="+", choices=list(SCALES), default=list(SCALES),
+                        help="scales to (re)measure; rows of the others are kept")
+    parser.add_argument("--one", nargs=2, metavar=("SCALE", "VARIANT"), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.one:
+        iters = args.iters if args.one[0] == "cm2-mini" else args.paper_iters
+        print(json.dumps(measure(*args.one, iters, args.threads)))
+        return
+    saved = RESULTS / "network.json"
+    kept = json.loads(saved.read_text()) if saved.is_file() else []
+    rows = [r for r in kept if r["scale"] not in args.scales]
+    for scale in args.scales:
+        for variant in VARIANTS:
+            out = subprocess.run(
+                [sys.executable, __file__, "--one", scale, variant, "--iters", str(args.iters),
+                 "--paper-iters", str(args.paper_iters), "--threads", str(args.threads)],
+                check=True, capture_output=True, text=True,
+            )
+            rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+            print(_line(rows[-1]), flush=True)
+    rows.sort(key=lambda r: (list(SCALES).index(r["scale"]), VARIANTS.index(r["variant"])))
+    for scale in {r["scale"] for r in rows}:
+        by = {r["variant"]: r for r in rows if r["scale"] == scale}
+        for variant in ("uncached", "cached"):
+            by[variant]["latency_vs_plain"] = by[variant]["latency_s"] / by["plain"]["latency_s"]
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / "network.json").write_text(json.dumps(rows, indent=2) + "\n")
+    (RESULTS / "network.md").write_text(_markdown(rows))
+    print((RESULTS / "network.md").read_text())
+
+
+def _line(row: dict) -> str:
+    return (f"{row['scale']:9s} {row['variant']:9s} params {row['parameters'] / 1e6:5.2f} M  "
+            f"latency {row['latency_s'] * 1e3:8.1f} ms  peak {row['peak_mib']:7.0f} MiB")
+
+
+def _markdown(rows: list[dict]) -> str:
+    lines = [
+        "# SV-CoDe network benchmark",
+        "",
+        "CPU (shared with other jobs: absolute times are noisy), float32, "
+        "`torch.inference_mode`. Latency: median per forward call (demixing + "
+        "reconstruction) of the whole batch. Peak: resident "
+        "memory above the level before the first call, fresh process per row (includes the "
+        "mask cache). Target: cached SV-CoDe ≤ 1.15 × plain NAFNet.",
+        "",
+        "| scale | tile × batch | threads | variant | params (M) | MLP params (M) "
+        "| latency (ms) | × plain | peak (MiB) | cache (MiB) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        ratio = f"{r['latency_vs_plain']:.2f}" if "latency_vs_plain" in r else "1"
+        lines.append(
+            f"| {r['scale']} | {r['tile']}² × {r['batch']} | {r['threads']} | {r['variant']} | "
+            f"{r['parameters'] / 1e6:.3f} | {r['mlp_parameters'] / 1e6:.3f} | "
+            f"{r['latency_s'] * 1e3:.1f} | {ratio} | {r['peak_mib']:.0f} | {r['cache_mib']:.0f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    main()

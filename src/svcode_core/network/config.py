@@ -1,0 +1,171 @@
+"""The network configuration: widths, depths, positional encoding and ablation switches."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass
+from typing import Any
+
+from ..config import ConfigError
+
+__all__ = ["PE_SCHEMES", "ModelConfig"]
+
+PE_SCHEMES = ("paper", "code")
+"""Frequency schemes of the positional encoding: ``"paper"`` uses ``2^k π`` (k = 0..L-1),
+``"code"`` (the published implementation) uses ``0.5 π · (1..L)``."""
+
+_BLOCK_LISTS = ("demix_enc_blocks", "demix_dec_blocks", "recon_enc_blocks", "recon_dec_blocks")
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Sizes and switches of the SV-CoDe network.
+
+    Attributes
+    ----------
+    width : int
+        Channels of the first U-Net level; level ``k`` has ``width · 2^k``.
+    view_width : int
+        Channels per view in the view-dependent first block (``9 · view_width`` in all).
+    demix_enc_blocks, demix_dec_blocks : tuple of int
+        CoDe blocks per encoder / decoder level of the Demixing-Net U-Net (same length;
+        the length is the number of down-sampling steps).
+    demix_middle_blocks : int
+        CoDe blocks at the bottom of the Demixing-Net U-Net.
+    recon_enc_blocks, recon_dec_blocks, recon_middle_blocks
+        The same for the Recon-Net U-Net.
+    pe_bands : int
+        ``L``, frequency bands per axis of the positional encoding.
+    pe_scheme : {"paper", "code"}
+        ``"paper"``: frequencies ``2^k π``; ``"code"``: ``0.5 π (k + 1)``, k = 0..L-1.
+    mlp_hidden : int
+        Hidden units of each coordinate MLP (``4L → mlp_hidden → C``).
+    coord_gate : bool
+        ``False`` builds no MLPs and every mask is 1: a plain NAFNet of the same widths.
+    positional_encoding : bool
+        ``False`` feeds the raw ``(v, u)`` to the MLPs.
+    lens_specific_first_block : bool
+        The first (view-dependent) block has one MLP per lens; ``False`` shares one.
+    """
+
+    width: int = 32
+    view_width: int = 8
+    demix_enc_blocks: tuple[int, ...] = (1, 1, 1, 1)
+    demix_middle_blocks: int = 1
+    demix_dec_blocks: tuple[int, ...] = (1, 1, 1, 1)
+    recon_enc_blocks: tuple[int, ...] = (1, 1, 1)
+    recon_middle_blocks: int = 1
+    recon_dec_blocks: tuple[int, ...] = (1, 1, 1)
+    pe_bands: int = 4
+    pe_scheme: str = "code"
+    mlp_hidden: int = 48
+    coord_gate: bool = True
+    positional_encoding: bool = True
+    lens_specific_first_block: bool = True
+
+    def __post_init__(self) -> None:
+        for name in _BLOCK_LISTS:  # JSON gives lists; keep the dataclass hashable
+            value = getattr(self, name)
+            if isinstance(value, list):
+                object.__setattr__(self, name, tuple(value))
+
+    # ------------------------------------------------------------------ presets
+    @classmethod
+    def reference(cls) -> ModelConfig:
+        """Sizes of the published model (width 32, Demix 4 levels, Recon 3 levels)."""
+        return cls().validate()
+
+    @classmethod
+    def mini(cls) -> ModelConfig:
+        """A small model for the ``cm2-mini`` CPU preset (width 16, 3 + 2 levels)."""
+        return cls(
+            width=16,
+            view_width=4,
+            demix_enc_blocks=(1, 1, 1),
+            demix_dec_blocks=(1, 1, 1),
+            recon_enc_blocks=(1, 1),
+            recon_dec_blocks=(1, 1),
+            mlp_hidden=32,
+        ).validate()
+
+    # ------------------------------------------------------------------ derived
+    @property
+    def demix_levels(self) -> int:
+        """Down-sampling steps of the Demixing-Net U-Net."""
+        return len(self.demix_enc_blocks)
+
+    @property
+    def recon_levels(self) -> int:
+        """Down-sampling steps of the Recon-Net U-Net."""
+        return len(self.recon_enc_blocks)
+
+    def replace(self, **changes: Any) -> ModelConfig:
+        """A validated copy with some fields changed."""
+        return dataclasses.replace(self, **changes).validate()
+
+    # --------------------------------------------------------------- validation
+    def validate(self) -> ModelConfig:
+        """Check every field; raise :class:`~svcode_core.config.ConfigError` naming it."""
+        for name in ("width", "view_width", "pe_bands", "mlp_hidden"):
+            _check_int(name, getattr(self, name), minimum=1)
+        for name in ("demix_middle_blocks", "recon_middle_blocks"):
+            _check_int(name, getattr(self, name), minimum=0)
+        for name in _BLOCK_LISTS:
+            value = getattr(self, name)
+            if not isinstance(value, tuple) or not value:
+                raise ConfigError(f"{name}: must be a non-empty list of integers, got {value!r}")
+            for item in value:
+                _check_int(name, item, minimum=0)
+        for stage in ("demix", "recon"):
+            enc, dec = getattr(self, f"{stage}_enc_blocks"), getattr(self, f"{stage}_dec_blocks")
+            if len(enc) != len(dec):
+                raise ConfigError(
+                    f"{stage}_dec_blocks: needs as many levels as {stage}_enc_blocks "
+                    f"({len(enc)}), got {len(dec)}"
+                )
+        if self.pe_scheme not in PE_SCHEMES:
+            raise ConfigError(f"pe_scheme: must be one of {PE_SCHEMES}, got {self.pe_scheme!r}")
+        for name in ("coord_gate", "positional_encoding", "lens_specific_first_block"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(f"{name}: must be true or false, got {getattr(self, name)!r}")
+        return self
+
+    # --------------------------------------------------------------- JSON I/O
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-JSON dictionary of every field."""
+        data = dataclasses.asdict(self)
+        for name in _BLOCK_LISTS:
+            data[name] = list(data[name])
+        return data
+
+    def to_json(self) -> str:
+        """The configuration as an indented JSON string."""
+        return json.dumps(self.to_dict(), indent=2)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> ModelConfig:
+        """Build and validate a configuration; unknown fields and bad values name the field."""
+        if not isinstance(data, dict):
+            raise ConfigError(f"model: expected a JSON object, got {type(data).__name__}")
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - names)
+        if unknown:
+            raise ConfigError(f"model.{unknown[0]}: unknown field (known: {sorted(names)})")
+        return cls(**data).validate()
+
+    @classmethod
+    def from_json(cls, text: str) -> ModelConfig:
+        """Parse a JSON string; see :meth:`from_dict`."""
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as err:
+            raise ConfigError(f"model: not valid JSON ({err})") from None
+        return cls.from_dict(data)
+
+
+def _check_int(name: str, value: Any, minimum: int) -> None:
+    if not isinstance(value, int) or isinstance(value, bool):
+        raise ConfigError(f"{name}: must be an integer, got {value!r}")
+    if value < minimum:
+        raise ConfigError(f"{name}: must be >= {minimum}, got {value}")

@@ -1,0 +1,419 @@
+"""The SV-CoDe models: the shared U-Net, Demixing-Net, Recon-Net and the joint SVCoDe.
+
+Every model takes the nine stacked sub-view tiles ``(B, 9, H, W)``, the integer
+``(row, col)`` origin of each tile inside its ``S × S`` sub-view and ``S``. Pixel
+coordinates are global: pixel ``(i, j)`` of a tile sits at ``2(origin + (i, j))/(S-1) - 1``.
+Inputs of any size are zero-padded at the bottom and right to a multiple of the U-Net
+stride (the coordinates continue over the padding) and the outputs are cropped back.
+Outputs pass through a sigmoid.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Hashable, Sequence
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ..config import N_LENSES
+from .blocks import CoDeBlock, ViewFusion
+from .config import ModelConfig
+from .coordgate import CoordGate, CoordGrid, MaskCache
+from .encoding import encoding_size, level_coordinates, positional_encoding
+
+__all__ = ["DemixNet", "MaskLayer", "ReconNet", "SVCoDe", "UNet"]
+
+DEFAULT_CACHE_BYTES = 1 << 30
+
+
+class MaskLayer(NamedTuple):
+    """One gated convolution: where it sits and the shape of its mask."""
+
+    stage: str
+    block: str
+    layer: str
+    channels: int
+    lenses: int
+    level: int
+
+
+def _blocks(count: int, channels: int, config: ModelConfig) -> nn.ModuleList:
+    hidden = config.mlp_hidden if config.coord_gate else None
+    features = encoding_size(config.pe_bands, config.positional_encoding)
+    return nn.ModuleList(CoDeBlock(channels, features, hidden) for _ in range(count))
+
+
+def _run_blocks(blocks: nn.ModuleList, x: torch.Tensor, grid: CoordGrid | None) -> torch.Tensor:
+    for block in blocks:
+        x = block(x, grid)
+    return x
+
+
+class UNet(nn.Module):
+    """NAFNet-style encoder–decoder of CoDe blocks with additive skips.
+
+    Level ``k`` has ``width · 2^k`` channels; down-sampling is a 2×2 stride-2
+    convolution, up-sampling a 1×1 convolution and a pixel shuffle.
+    """
+
+    def __init__(
+        self,
+        config: ModelConfig,
+        enc_blocks: Sequence[int],
+        middle_blocks: int,
+        dec_blocks: Sequence[int],
+    ) -> None:
+        super().__init__()
+        self.levels = len(enc_blocks)
+        widths = [config.width * 2**k for k in range(self.levels + 1)]
+        self.encoders = nn.ModuleList(
+            _blocks(n, widths[k], config) for k, n in enumerate(enc_blocks)
+        )
+        self.downs = nn.ModuleList(
+            nn.Conv2d(widths[k], widths[k + 1], 2, stride=2) for k in range(self.levels)
+        )
+        self.middle = _blocks(middle_blocks, widths[-1], config)
+        self.ups = nn.ModuleList(
+            nn.Sequential(nn.Conv2d(widths[k + 1], 2 * widths[k + 1], 1, bias=False),
+                          nn.PixelShuffle(2))
+            for k in range(self.levels)
+        )
+        self.decoders = nn.ModuleList(
+            _blocks(n, widths[k], config) for k, n in enumerate(dec_blocks)
+        )
+
+    def forward(self, x: torch.Tensor, grids: Sequence[CoordGrid | None]) -> torch.Tensor:
+        """``x`` ``(B, width, H, W)`` with ``H, W`` divisible by ``2**levels``."""
+        skips = []
+        for level, (blocks, down) in enumerate(zip(self.encoders, self.downs, strict=True)):
+            x = _run_blocks(blocks, x, grids[level])
+            skips.append(x)
+            x = down(x)
+        x = _run_blocks(self.middle, x, grids[self.levels])
+        for level in reversed(range(self.levels)):
+            x = self.ups[level](x) + skips[level]
+            x = _run_blocks(self.decoders[level], x, grids[level])
+        return x
+
+    def named_blocks(self) -> list[tuple[str, CoDeBlock, int]]:
+        """``(name, block, level)`` for every CoDe block, names like ``enc0.0``."""
+        out = []
+        for tag, groups in (("enc", self.encoders), ("dec", self.decoders)):
+            for level, blocks in enumerate(groups):
+                out += [(f"{tag}{level}.{i}", b, level) for i, b in enumerate(blocks)]
+        out += [(f"middle.{i}", b, self.levels) for i, b in enumerate(self.middle)]
+        return out
+
+
+class _ViewNet(nn.Module):
+    """Shared design of both stages: view-dependent CoDe block, view fusion, U-Net.
+
+    Each view goes through a 3×3 convolution to ``view_width`` channels and the
+    view-dependent CoDe block (shared convolutions, lens-specific mask MLPs); the
+    features of the nine views are fused by :class:`~.blocks.ViewFusion` into ``width``
+    channels for the shared U-Net, and a 3×3 convolution and a sigmoid give the output.
+    """
+
+    stage = ""
+
+    def __init__(
+        self,
+        config: ModelConfig,
+        out_channels: int,
+        enc_blocks: Sequence[int],
+        middle_blocks: int,
+        dec_blocks: Sequence[int],
+    ) -> None:
+        super().__init__()
+        self.config = config.validate()
+        hidden = config.mlp_hidden if config.coord_gate else None
+        features = encoding_size(config.pe_bands, config.positional_encoding)
+        lenses = N_LENSES if config.lens_specific_first_block else 1
+        self.intro = nn.Conv2d(1, config.view_width, 3, padding=1)
+        self.view_block = CoDeBlock(config.view_width, features, hidden, lenses)
+        self.fusion = ViewFusion(N_LENSES, config.view_width, config.width)
+        self.unet = UNet(config, enc_blocks, middle_blocks, dec_blocks)
+        self.ending = nn.Conv2d(config.width, out_channels, 3, padding=1)
+
+    @property
+    def levels(self) -> int:
+        """Down-sampling steps of the U-Net (the stride is ``2**levels``)."""
+        return self.unet.levels
+
+    def run(self, views: torch.Tensor, grids: Sequence[CoordGrid | None]) -> torch.Tensor:
+        """Network on padded views ``(B, 9, H, W)``; ``grids[k]`` for level ``k``."""
+        batch, lenses, h, w = views.shape
+        x = self.intro(views.reshape(batch * lenses, 1, h, w))
+        x = self.view_block(x, grids[0])
+        x = self.fusion(x.reshape(batch, lenses * x.shape[1], h, w))
+        return torch.sigmoid(self.ending(self.unet(x, grids)))
+
+    def named_gates(self) -> list[tuple[MaskLayer, CoordGate]]:
+        """Every gated convolution of this stage with its description."""
+        blocks = [("view", self.view_block, 0), *self.unet.named_blocks()]
+        out = []
+        for block_name, block, level in blocks:
+            for layer in ("conv1", "conv2", "conv3", "conv4", "conv5"):
+                gate = getattr(block, layer)
+                if gate.mlp is not None:
+                    info = MaskLayer(self.stage, block_name, layer, gate.mlp.channels,
+                                     gate.mlp.lenses, level)
+                    out.append((info, gate))
+        return out
+
+
+class _MaskedModel(nn.Module):
+    """Tile coordinates, the mask cache and mask inspection for a top-level model."""
+
+    def _stages(self) -> list[_ViewNet]:
+        raise NotImplementedError
+
+    def _setup_masks(self, config: ModelConfig) -> None:
+        self.model_config = config
+        self._mask_cache: MaskCache | None = None
+        self._gates = {}
+        for stage in self._stages():
+            for info, gate in stage.named_gates():
+                gate.cache_name = f"{info.stage}/{info.block}/{info.layer}"
+                self._gates[(info.stage, info.block, info.layer)] = (info, gate)
+
+    # ------------------------------------------------------------- mask cache
+    def cache_masks(
+        self, enabled: bool = True, max_bytes: int = DEFAULT_CACHE_BYTES
+    ) -> _CacheSwitch:
+        """Switch the mask cache on (or off); usable plainly or as a context manager.
+
+        The cache serves only forward passes without gradient (``torch.no_grad`` or
+        ``torch.inference_mode``); with gradients enabled masks are always recomputed.
+        Entries are dropped when the MLP weights change (in-place updates, loading,
+        dtype or device moves) and the least recently used ones once ``max_bytes`` is
+        exceeded. Leaving the ``with`` block restores the previous cache.
+
+        Examples
+        --------
+        >>> model = SVCoDe(ModelConfig.mini())
+        >>> with model.cache_masks(max_bytes=2**28), torch.no_grad():
+        ...     pass  # run the tiles of every frame here
+        """
+        previous = self._mask_cache
+        self._mask_cache = MaskCache(max_bytes) if enabled else None
+        return _CacheSwitch(self, previous)
+
+    def mask_cache_info(self) -> dict[str, int | bool]:
+        """``enabled``, ``entries``, ``bytes``, ``max_bytes``, ``hits`` and ``misses``."""
+        if self._mask_cache is None:
+            return {"enabled": False, "entries": 0, "bytes": 0, "max_bytes": 0,
+                    "hits": 0, "misses": 0}
+        return {"enabled": True, **self._mask_cache.info()}
+
+    def _weights_key(self) -> Hashable:
+        return tuple(
+            (p.data_ptr(), p._version, p.dtype, str(p.device))
+            for _, gate in self._gates.values()
+            for p in gate.mlp.parameters()
+        )
+
+    # ------------------------------------------------------------ coordinates
+    def _grids(
+        self, origins: torch.Tensor, sub_view_size: int, shape: tuple[int, int], levels: int
+    ) -> list[CoordGrid | None]:
+        if not self._gates:
+            return [None] * (levels + 1)
+        cache = self._mask_cache
+        if cache is not None:
+            cache.check_weights(self._weights_key())
+        config = self.model_config
+        dtype = next(self.parameters()).dtype
+        rows = level_coordinates(origins[:, 0], shape[0], sub_view_size, levels)
+        cols = level_coordinates(origins[:, 1], shape[1], sub_view_size, levels)
+        keys = tuple((r, c, *shape, sub_view_size) for r, c in origins.tolist())
+        return [
+            CoordGrid(
+                positional_encoding(r, config.pe_bands, config.pe_scheme,
+                                    config.positional_encoding, dtype),
+                positional_encoding(c, config.pe_bands, config.pe_scheme,
+                                    config.positional_encoding, dtype),
+                keys,
+                cache,
+            )
+            for r, c in zip(rows, cols, strict=True)
+        ]
+
+    def _prepare(
+        self, views: torch.Tensor, origins: torch.Tensor | Sequence, sub_view_size: int, levels: int
+    ) -> tuple[torch.Tensor, list[CoordGrid | None]]:
+        """Validate, pad to a multiple of ``2**levels`` and build the coordinate grids."""
+        if not isinstance(views, torch.Tensor) or views.ndim != 4 or views.shape[1] != N_LENSES:
+            shape = tuple(views.shape) if isinstance(views, torch.Tensor) else type(views).__name__
+            raise ValueError(f"views must have shape (B, {N_LENSES}, H, W), got {shape}")
+        if not views.is_floating_point():
+            raise ValueError(f"views must be floating point, got {views.dtype}")
+        if not torch.isfinite(views).all():
+            raise ValueError("views contain NaN or Inf")
+        origins = torch.as_tensor(origins, device=torch.device("cpu"))
+        if origins.shape != (views.shape[0], 2) or origins.is_floating_point():
+            raise ValueError(
+                f"origins must be integer (row, col) of shape ({views.shape[0]}, 2), "
+                f"got {origins.dtype} {tuple(origins.shape)}"
+            )
+        if not isinstance(sub_view_size, int) or sub_view_size < 2:
+            raise ValueError(f"sub_view_size must be an integer >= 2, got {sub_view_size!r}")
+        stride = 2**levels
+        h, w = views.shape[-2:]
+        hp, wp = math.ceil(h / stride) * stride, math.ceil(w / stride) * stride
+        padded = F.pad(views, (0, wp - w, 0, hp - h))
+        return padded, self._grids(origins.long(), sub_view_size, (hp, wp), levels)
+
+    # --------------------------------------------------------- mask inspection
+    def mask_layers(self) -> list[MaskLayer]:
+        """Every gated convolution (empty with ``coord_gate=False``)."""
+        return [info for info, _ in self._gates.values()]
+
+    @torch.no_grad()
+    def coordinate_mask(
+        self,
+        stage: str,
+        block: str,
+        layer: str,
+        sub_view_size: int,
+        lens: int = 0,
+        channels: int | slice | None = None,
+        max_chunk_bytes: int = 1 << 27,
+    ) -> torch.Tensor:
+        """One layer's mask ``M(r)`` over the whole ``S × S`` sub-view, on request.
+
+        The MLP is evaluated at the full-resolution pixel coordinates (at a down-sampled
+        level the network samples the same function on the coarser grid).
+
+        Parameters
+        ----------
+        stage, block, layer : str
+            A layer from :meth:`mask_layers` (e.g. ``"demix", "enc1.0", "conv2"``).
+        sub_view_size : int
+            ``S``.
+        lens : int
+            Lens of a lens-specific layer (ignored for shared ones).
+        channels : int or slice, optional
+            Mask channels to compute; all by default.
+        max_chunk_bytes : int
+            Memory bound for the hidden activations (rows are done in chunks).
+
+        Returns
+        -------
+        torch.Tensor
+            ``(C, S, S)`` float32 on the model's device.
+        """
+        key = (stage, block, layer)
+        if key not in self._gates:
+            raise ValueError(f"no gated layer {key}; see mask_layers()")
+        info, gate = self._gates[key]
+        if not 0 <= lens < N_LENSES:
+            raise ValueError(f"lens must be in 0..{N_LENSES - 1}, got {lens}")
+        if isinstance(channels, int):
+            channels = slice(channels, channels + 1)
+        config, param = self.model_config, gate.mlp.w_out
+        coords = torch.zeros(1, 2, dtype=torch.long)
+        axis = level_coordinates(coords[:, 0], sub_view_size, sub_view_size, 0)[0]
+        enc = positional_encoding(axis, config.pe_bands, config.pe_scheme,
+                                  config.positional_encoding, param.dtype).to(param.device)
+        row_bytes = sub_view_size * param.shape[-1] * info.lenses * param.element_size()
+        chunk = max(1, max_chunk_bytes // row_bytes)
+        parts = [
+            gate.masks(enc[:, start : start + chunk], enc, channels)[0, min(lens, info.lenses - 1)]
+            for start in range(0, sub_view_size, chunk)
+        ]
+        return torch.cat(parts, dim=1).float()
+
+
+class _CacheSwitch:
+    """Returned by :meth:`cache_masks`; as a context manager restores the previous cache."""
+
+    def __init__(self, model: _MaskedModel, previous: MaskCache | None) -> None:
+        self._model, self._previous = model, previous
+
+    def __enter__(self) -> _MaskedModel:
+        return self._model
+
+    def __exit__(self, *exc: object) -> None:
+        self._model._mask_cache = self._previous
+
+
+class DemixNet(_ViewNet, _MaskedModel):
+    """Demixing-Net: nine multiplexed sub-view tiles in, nine demixed tiles out."""
+
+    stage = "demix"
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__(config, N_LENSES, config.demix_enc_blocks, config.demix_middle_blocks,
+                         config.demix_dec_blocks)
+        self._setup_masks(config)
+
+    def _stages(self) -> list[_ViewNet]:
+        return [self]
+
+    def forward(
+        self, views: torch.Tensor, origins: torch.Tensor | Sequence, sub_view_size: int
+    ) -> torch.Tensor:
+        """Demixed views ``(B, 9, H, W)`` in ``(0, 1)``; see the module docstring."""
+        padded, grids = self._prepare(views, origins, sub_view_size, self.levels)
+        return self.run(padded, grids)[..., : views.shape[-2], : views.shape[-1]]
+
+
+class ReconNet(_ViewNet, _MaskedModel):
+    """Recon-Net: nine demixed tiles in, one tile of the object out."""
+
+    stage = "recon"
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__(config, 1, config.recon_enc_blocks, config.recon_middle_blocks,
+                         config.recon_dec_blocks)
+        self._setup_masks(config)
+
+    def _stages(self) -> list[_ViewNet]:
+        return [self]
+
+    def forward(
+        self, views: torch.Tensor, origins: torch.Tensor | Sequence, sub_view_size: int
+    ) -> torch.Tensor:
+        """Reconstruction ``(B, 1, H, W)`` in ``(0, 1)``; see the module docstring."""
+        padded, grids = self._prepare(views, origins, sub_view_size, self.levels)
+        return self.run(padded, grids)[..., : views.shape[-2], : views.shape[-1]]
+
+
+class SVCoDe(_MaskedModel):
+    """The joint model: Demixing-Net then Recon-Net, trained end to end.
+
+    Parameters
+    ----------
+    config : ModelConfig
+
+    Examples
+    --------
+    >>> model = SVCoDe(ModelConfig.mini())
+    >>> demixed, recon = model(torch.rand(2, 9, 40, 37), [[0, 0], [100, 48]], 384)
+    >>> tuple(demixed.shape), tuple(recon.shape)
+    ((2, 9, 40, 37), (2, 1, 40, 37))
+    """
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__()
+        self.demix = DemixNet(config)
+        self.recon = ReconNet(config)
+        self._setup_masks(config)
+
+    def _stages(self) -> list[_ViewNet]:
+        return [self.demix, self.recon]
+
+    def forward(
+        self, views: torch.Tensor, origins: torch.Tensor | Sequence, sub_view_size: int
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(demixed (B, 9, H, W), reconstruction (B, 1, H, W))``, both in ``(0, 1)``."""
+        levels = max(self.demix.levels, self.recon.levels)
+        padded, grids = self._prepare(views, origins, sub_view_size, levels)
+        demixed = self.demix.run(padded, grids)
+        recon = self.recon.run(demixed, grids)
+        h, w = views.shape[-2:]
+        return demixed[..., :h, :w], recon[..., :h, :w]

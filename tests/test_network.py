@@ -1,0 +1,214 @@
+"""The SV-CoDe network: configuration, shapes, coordinates, equivariance, gradients, precision."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from svcode_core.config import ConfigError
+from svcode_core.geometry import normalized_coordinates
+from svcode_core.network import (
+    DemixNet,
+    ModelConfig,
+    ReconNet,
+    SVCoDe,
+    level_coordinates,
+    positional_encoding,
+)
+
+TINY = ModelConfig(
+    width=4,
+    view_width=2,
+    demix_enc_blocks=(1, 1),
+    demix_dec_blocks=(1, 1),
+    recon_enc_blocks=(1,),
+    recon_dec_blocks=(1,),
+    mlp_hidden=8,
+)
+
+
+def _randomise_scales(model: torch.nn.Module, value: float = 0.5) -> None:
+    """Give the zero-initialised residual scales a value so every branch matters."""
+    with torch.no_grad():
+        for name, param in model.named_parameters():
+            if name.endswith(("beta", "gamma")):
+                param.fill_(value)
+
+
+def _model(config: ModelConfig = TINY, seed: int = 0) -> SVCoDe:
+    torch.manual_seed(seed)
+    model = SVCoDe(config)
+    _randomise_scales(model)
+    return model
+
+
+# ------------------------------------------------------------------ configuration
+def test_reference_parameter_count():
+    model = SVCoDe(ModelConfig.reference())
+    total = sum(p.numel() for p in model.parameters())
+    mlp = sum(p.numel() for n, p in model.named_parameters() if ".mlp." in n)
+    assert abs(total - 5.9e6) <= 0.15 * 5.9e6, total
+    assert 0.7e6 < mlp < 1.5e6, mlp  # the paper quotes about 1.3 M in the mask MLPs
+    assert sum(p.numel() for p in SVCoDe(ModelConfig.mini()).parameters()) < total / 5
+
+
+def test_config_json_round_trip_and_errors():
+    config = ModelConfig.mini().replace(pe_scheme="paper", positional_encoding=False)
+    assert ModelConfig.from_json(config.to_json()) == config
+    with pytest.raises(ConfigError, match="width"):
+        ModelConfig(width=0).validate()
+    with pytest.raises(ConfigError, match="demix_dec_blocks"):
+        ModelConfig(demix_dec_blocks=(1, 1)).validate()
+    with pytest.raises(ConfigError, match="pe_scheme"):
+        ModelConfig.from_dict({"pe_scheme": "fourier"})
+    with pytest.raises(ConfigError, match="model.depth"):
+        ModelConfig.from_dict({"depth": 3})
+    with pytest.raises(ConfigError, match="coord_gate"):
+        ModelConfig.from_dict({"coord_gate": "yes"})
+
+
+# ------------------------------------------------------------ positional encoding
+@pytest.mark.parametrize("scheme", ["paper", "code"])
+def test_largest_band_is_exact_at_the_field_edge(scheme):
+    edge = torch.tensor([-1.0, 1.0])
+    enc = positional_encoding(edge, 4, scheme)
+    # last band: 2^3 π (paper) or 2 π (code): sin = 0 and cos = 1 exactly at ±1
+    assert enc[:, -2].abs().max().item() <= 1e-15
+    assert torch.equal(enc[:, -1], torch.ones(2))
+
+
+def test_encoding_matches_float64_reference():
+    t = torch.linspace(-1.3, 1.3, 301, dtype=torch.float64)
+    enc = positional_encoding(t, 5, "paper")
+    for k in range(5):
+        angle = 2.0**k * np.pi * t.numpy()
+        np.testing.assert_allclose(enc[:, 2 * k].numpy(), np.sin(angle), atol=2e-7)
+        np.testing.assert_allclose(enc[:, 2 * k + 1].numpy(), np.cos(angle), atol=2e-7)
+    code = positional_encoding(t, 4, "code")
+    np.testing.assert_allclose(code[:, 4].numpy(), np.sin(1.5 * np.pi * t.numpy()), atol=2e-7)
+    raw = positional_encoding(t, 4, "code", enabled=False)
+    assert raw.shape == (301, 1)
+
+
+def test_level_coordinates_are_those_of_the_pooled_grid():
+    size = 50
+    levels = level_coordinates(torch.tensor([-3, 20]), 16, size, 2)
+    assert torch.equal(levels[0][1], normalized_coordinates(size, 20, 16, dtype=torch.float64))
+    # level-k pixel j covers level-0 pixels 2^k j .. 2^k (j+1) - 1: its centre
+    for k in (1, 2):
+        centre = -3 + 2**k * torch.arange(16 // 2**k, dtype=torch.float64) + (2**k - 1) / 2
+        torch.testing.assert_close(levels[k][0], 2 * centre / (size - 1) - 1, rtol=0, atol=1e-15)
+
+
+# ------------------------------------------------------------------------- shapes
+@pytest.mark.parametrize("shape", [(13, 13), (21, 35), (16, 9)])
+def test_output_shapes_for_any_size(shape):
+    model = _model()
+    views = torch.rand(2, 9, *shape)
+    demixed, recon = model(views, torch.tensor([[0, 0], [-5, 30]]), 48)
+    assert demixed.shape == (2, 9, *shape) and recon.shape == (2, 1, *shape)
+    assert 0 < demixed.min() and demixed.max() < 1 and 0 < recon.min() and recon.max() < 1
+    assert DemixNet(TINY)(views, [[0, 0], [1, 1]], 48).shape == (2, 9, *shape)
+    assert ReconNet(TINY)(views, [[0, 0], [1, 1]], 48).shape == (2, 1, *shape)
+
+
+def test_bad_inputs_raise():
+    model = _model()
+    with pytest.raises(ValueError, match="views must have shape"):
+        model(torch.rand(1, 8, 16, 16), [[0, 0]], 48)
+    with pytest.raises(ValueError, match="NaN"):
+        model(torch.full((1, 9, 16, 16), float("nan")), [[0, 0]], 48)
+    with pytest.raises(ValueError, match="origins"):
+        model(torch.rand(1, 9, 16, 16), [[0.5, 0.0]], 48)
+    with pytest.raises(ValueError, match="origins"):
+        model(torch.rand(2, 9, 16, 16), [[0, 0]], 48)
+
+
+def test_global_coordinates_change_the_output():
+    model = _model()
+    views = torch.rand(1, 9, 16, 16)
+    with torch.no_grad():
+        a = model(views, [[0, 0]], 48)[1]
+        b = model(views, [[16, 0]], 48)[1]
+        c = model(views, [[16, 0]], 96)[1]
+    assert (a - b).abs().max() > 1e-4 and (b - c).abs().max() > 1e-4
+
+
+# ---------------------------------------------------------------- equivariance
+def _circular(model: torch.nn.Module) -> None:
+    for module in model.modules():
+        if isinstance(module, torch.nn.Conv2d) and module.padding != (0, 0):
+            module.padding_mode = "circular"
+
+
+def _shift_error(model: SVCoDe) -> float:
+    """Largest output change (interior) between rolling the input and rolling the output.
+
+    Convolutions are made circular, so the only non-equivariant part left is the mask.
+    The shift (8) is a multiple of the total stride (4) and the size (32) needs no padding.
+    """
+    _circular(model)
+    torch.manual_seed(1)
+    views = torch.rand(1, 9, 32, 32)
+    with torch.no_grad():
+        _, recon = model(views, [[0, 0]], 48)
+        _, shifted = model(torch.roll(views, (8, 8), (2, 3)), [[0, 0]], 48)
+    interior = (slice(None), slice(None), slice(12, 28), slice(12, 28))
+    return (torch.roll(recon, (8, 8), (2, 3)) - shifted)[interior].abs().max().item()
+
+
+def test_plain_nafnet_is_translation_equivariant():
+    assert _shift_error(_model(TINY.replace(coord_gate=False))) < 1e-5
+
+
+def test_coordinate_gated_model_is_not_translation_equivariant():
+    assert _shift_error(_model()) > 1e-3
+
+
+def test_coord_gate_off_builds_no_mlp():
+    model = SVCoDe(TINY.replace(coord_gate=False))
+    assert not any(".mlp." in n for n, _ in model.named_parameters())
+    assert model.mask_layers() == []
+
+
+# ------------------------------------------------------------------- gradients
+@pytest.mark.parametrize("switches", [{}, {"positional_encoding": False},
+                                      {"lens_specific_first_block": False}])
+def test_gradient_reaches_every_parameter(switches):
+    model = _model(TINY.replace(**switches))
+    demixed, recon = model(torch.rand(2, 9, 12, 12), [[0, 0], [30, 4]], 48)
+    (demixed.square().mean() + recon.square().mean()).backward()
+    for name, param in model.named_parameters():
+        assert param.grad is not None, name
+        assert torch.isfinite(param.grad).all(), name
+        assert param.grad.abs().max() > 0, name
+
+
+# ------------------------------------------------------------------- precision
+@pytest.mark.parametrize("dtype, tolerance", [(torch.bfloat16, 1e-2), (torch.float16, 2e-3)])
+def test_autocast_is_finite_and_close_to_float32(dtype, tolerance):
+    """Absolute tolerance on the (0, 1) outputs: about 2.5 units of the format's epsilon
+    (2^-8 for bf16, 2^-11 for fp16); measured 2.2e-3 and 2.9e-4."""
+    model = _model()
+    views = torch.rand(2, 9, 16, 16)
+    with torch.no_grad():
+        reference = model(views, [[0, 0], [8, 8]], 48)
+        with torch.autocast("cpu", dtype=dtype):
+            low = model(views, [[0, 0], [8, 8]], 48)
+    for ref, out in zip(reference, low, strict=True):
+        assert torch.isfinite(out).all()
+        assert (ref - out.float()).abs().max().item() < tolerance
+
+
+def test_half_model_runs():
+    model = _model()
+    views = torch.rand(1, 9, 16, 16)
+    with torch.no_grad():
+        reference = model(views, [[0, 0]], 48)[1]
+        half = model.half()(views.half(), [[0, 0]], 48)[1]
+    assert half.dtype == torch.float16 and torch.isfinite(half).all()
+    assert (reference - half.float()).abs().max() < 1e-2
+    assert math.isfinite(float(half.sum()))
