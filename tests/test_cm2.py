@@ -113,3 +113,11 @@ def test_zero_energy_psf_is_harmless(tiny_system):
     assert torch.isfinite(op.forward(x)).all()
     assert op.lens_images(x)[3].abs().max() == 0
     assert torch.isfinite(op.adjoint(op.forward(x))).all()
+
+
+def test_measure_with_targets_matches_separate_calls(tiny_system):
+    op = CM2Operator.from_psfs(tiny_system, gaussian_psfs(tiny_system), dtype=torch.float64)
+    x = torch.rand(tiny_system.sub_view_size, tiny_system.sub_view_size, dtype=torch.float64)
+    frame, targets = op.measure_with_targets(x)
+    torch.testing.assert_close(frame, op.measure(x), rtol=0, atol=0)
+    torch.testing.assert_close(targets, op.lens_images(x), rtol=0, atol=0)

@@ -4,14 +4,25 @@ Physics simulation of computational miniature mesoscopes (CM²), the SV-CoDe net
 tiled inference, training, baselines and metrics. No Qt is imported anywhere here.
 """
 
+from .cm2 import CM2Operator
 from .config import ConfigError, NoiseConfig, OpticsConfig, SystemConfig, load_system
+from .lowrank import LowRankSVOperator
+from .network import ModelConfig, SVCoDe
+from .reconstruct import Reconstructor
+from .simulate import Simulator
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "CM2Operator",
     "ConfigError",
+    "LowRankSVOperator",
+    "ModelConfig",
     "NoiseConfig",
     "OpticsConfig",
+    "Reconstructor",
+    "SVCoDe",
+    "Simulator",
     "SystemConfig",
     "load_system",
 ]

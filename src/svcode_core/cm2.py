@@ -177,8 +177,7 @@ class CM2Operator:
         torch.Tensor
             ``(..., H_pad, W_pad)``, zero outside the sensor window.
         """
-        frame = place_sub_views(self.lens_blur(x), self.system, self.margin)
-        return frame * self._sensor_mask
+        return self._frame_of(self.lens_blur(x))
 
     __call__ = forward
 
@@ -199,4 +198,15 @@ class CM2Operator:
         reproduces the measurement inside each lens's own sub-view, minus the crosstalk
         of the other lenses.
         """
-        return self._shrink(self.lens_blur(x)) * self._own_view_mask
+        return self._targets_of(self.lens_blur(x))
+
+    def measure_with_targets(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`measure` and :meth:`lens_images` of ``x`` from one pass of the lens blur."""
+        blur = self.lens_blur(x)
+        return crop_to_sensor(self._frame_of(blur), self.system), self._targets_of(blur)
+
+    def _frame_of(self, blur: torch.Tensor) -> torch.Tensor:
+        return place_sub_views(blur, self.system, self.margin) * self._sensor_mask
+
+    def _targets_of(self, blur: torch.Tensor) -> torch.Tensor:
+        return self._shrink(blur) * self._own_view_mask

@@ -110,7 +110,7 @@ class Simulator:
             raise ValueError(f"frames must be >= 1, got {frames}")
         op = self.operator
         x = torch.as_tensor(np.asarray(obj), dtype=op.lenses.dtype, device=op.lenses.device)
-        clean = op.measure(x)
+        clean, targets = op.measure_with_targets(x)
         generator = torch.Generator(device=clean.device)
         if seed is None:
             generator.seed()
@@ -126,7 +126,7 @@ class Simulator:
             object=_numpy(x),
             measurement=_numpy(measurement),
             views=_numpy(views),
-            demixed=_numpy(op.lens_images(x)),
+            demixed=_numpy(targets),
         )
 
 
