@@ -1,0 +1,47 @@
+"""Reader: raw CM² frames and stacks (TIFF, OME-TIFF) with their system configuration."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+from svcode_core.io import read_tiff
+
+from ._layers import layer_metadata, object_translate
+
+__all__ = ["get_reader", "read_cm2_tiff"]
+
+SUFFIXES = (".tif", ".tiff")
+OBJECT_GRID_KINDS = ("reconstruction", "object", "demixed")
+
+
+def get_reader(path: str | list[str]) -> Callable[[str | list[str]], list[tuple]] | None:
+    """The reader for ``path`` when it is a TIFF file (or a list of them), else ``None``."""
+    paths = [path] if isinstance(path, str) else list(path)
+    if not paths or not all(str(p).lower().endswith(SUFFIXES) for p in paths):
+        return None
+    return read_cm2_tiff
+
+
+def read_cm2_tiff(path: str | list[str]) -> list[tuple]:
+    """Image layers for TIFF files: a raw frame ``(H, W)`` or stack ``(T, H, W)`` each.
+
+    The system comes from the file's metadata or a ``system.json`` beside it and is kept
+    in the layer metadata (``svcode_system``); files without one open as plain images
+    (set the system in the Calibration widget). Data on the object grid written by this
+    package (reconstructions, ground truth, demixed views) are placed over the raw frame.
+    """
+    paths = [path] if isinstance(path, str) else list(path)
+    layers = []
+    for item in paths:
+        array, system, meta = read_tiff(item)
+        kind = meta.get("kind") or "measurement"
+        model = meta.get("model")
+        kwargs = {
+            "name": Path(item).name.split(".")[0],
+            "metadata": layer_metadata(system, kind, model),
+        }
+        if system is not None and kind in OBJECT_GRID_KINDS:
+            kwargs["translate"] = (0.0,) * (array.ndim - 2) + object_translate(system)
+        layers.append((array, kwargs, "image"))
+    return layers

@@ -1,0 +1,73 @@
+"""Expensive core objects the widgets share, built on demand and cached in memory."""
+
+from __future__ import annotations
+
+import functools
+from importlib import resources
+from pathlib import Path
+
+import torch
+
+from svcode_core.config import SystemConfig
+from svcode_core.network import load_model
+from svcode_core.simulate import Simulator
+
+__all__ = ["NO_BUNDLED_MODEL", "available_devices", "bundled_model", "cached_model", "simulator"]
+
+
+@functools.lru_cache(maxsize=4)
+def simulator(system: SystemConfig) -> Simulator:
+    """The :class:`~svcode_core.simulate.Simulator` of ``system`` (PSFs built once)."""
+    return Simulator(system)
+
+
+def bundled_model(system_name: str | None = None) -> Path | None:
+    """A model file shipped in ``svcode_core/weights`` for ``system_name``, if installed.
+
+    Without a name, the first bundled model (alphabetically) is returned.
+    """
+    folder = resources.files("svcode_core").joinpath("weights")
+    if not folder.is_dir():
+        return None
+    files = sorted(
+        Path(str(entry)) for entry in folder.iterdir() if entry.name.endswith(".safetensors")
+    )
+    if system_name is not None:
+        files = [path for path in files if path.stem == system_name]
+    return files[0] if files else None
+
+
+NO_BUNDLED_MODEL = (
+    "No bundled SV-CoDe model is installed for this system; choose 'model file' and select "
+    "a .safetensors model trained for this system"
+)
+
+
+def cached_model(path: str | Path, system: SystemConfig | None = None):
+    """``(model, training system)`` of a model file, loaded once per file version.
+
+    ``system`` (optional) is checked against the model's training system; a model for
+    another system raises :class:`ValueError` listing the differing fields.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"model file not found: {path}")
+    model, stored = _load(str(path.resolve()), path.stat().st_mtime_ns)
+    if system is not None and system != stored:
+        load_model(path, system=system)  # raises, naming the differing fields
+    return model, stored
+
+
+@functools.lru_cache(maxsize=2)
+def _load(path: str, mtime_ns: int):
+    return load_model(path)
+
+
+def available_devices() -> list[str]:
+    """Devices PyTorch can use here, CPU first."""
+    devices = ["cpu"]
+    if torch.cuda.is_available():
+        devices += [f"cuda:{index}" for index in range(torch.cuda.device_count())]
+    if torch.backends.mps.is_available():
+        devices.append("mps")
+    return devices

@@ -1,0 +1,302 @@
+"""napari plugin widgets end to end, and the README screenshot (needs an X server: xvfb-run)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("napari")
+
+import napari_svcode._layers as plugin_layers  # noqa: E402
+from napari_svcode._layers import SYSTEM_KEY, layer_metadata, object_translate  # noqa: E402
+from napari_svcode.widgets import (  # noqa: E402
+    CalibrationWidget,
+    MaskWidget,
+    ReconstructWidget,
+    SimulateWidget,
+    reconstruct_frames,
+)
+from svcode_core.config import SystemConfig  # noqa: E402
+from svcode_core.network import ModelConfig, SVCoDe, save_model  # noqa: E402
+from svcode_core.reconstruct import FrameProgress, Reconstructor  # noqa: E402
+
+pytestmark = pytest.mark.gui
+
+SCREENSHOT = Path(__file__).resolve().parents[1] / "docs" / "images" / "napari.png"
+TINY_MODEL = ModelConfig(width=4, view_width=2, demix_enc_blocks=(1,), demix_dec_blocks=(1,),
+                         recon_enc_blocks=(1,), recon_dec_blocks=(1,), mlp_hidden=8, pe_bands=2)
+
+
+def _model_file(path: Path, system: SystemConfig) -> Path:
+    torch.manual_seed(0)
+    return save_model(path, SVCoDe(TINY_MODEL.validate()), system)
+
+
+@pytest.fixture
+def model_file(tmp_path, tiny_system) -> Path:
+    return _model_file(tmp_path / "tiny.safetensors", tiny_system)
+
+
+@pytest.fixture
+def errors(monkeypatch) -> list[str]:
+    """Messages of the plugin's error notifications."""
+    shown: list[str] = []
+    monkeypatch.setattr(plugin_layers, "show_error", shown.append)
+    return shown
+
+
+def _raw_stack(system: SystemConfig, frames: int) -> np.ndarray:
+    rng = np.random.default_rng(0)
+    return rng.random((frames, *system.sensor_shape), dtype=np.float32)
+
+
+def _dock(viewer, widget_class):
+    widget = widget_class(viewer)
+    viewer.window.add_dock_widget(widget, name=widget_class.__name__.removesuffix("Widget"))
+    return widget
+
+
+def _use_model(widget, path: Path) -> None:
+    widget._model.source.value = widget._model.FROM_FILE
+    widget._model.path.value = path
+
+
+# ----------------------------------------------------------------- calibration
+def test_calibration_box_move_updates_chief_rays_and_saves(tmp_path, tiny_system,
+                                                           make_napari_viewer, errors):
+    viewer = make_napari_viewer()
+    raw = viewer.add_image(_raw_stack(tiny_system, 1)[0], name="raw", translate=(5, 7))
+    widget = _dock(viewer, CalibrationWidget)
+    widget.show_sub_views()  # the layer has no system yet
+    assert errors and "no system configuration" in errors[-1]
+
+    system_file = tiny_system.save(tmp_path / "system.json")
+    widget._system_choice.source.value = widget._system_choice.FROM_FILE
+    widget._system_choice.path.value = system_file
+    widget.show_sub_views()
+    boxes, rays = viewer.layers["sub-views"], viewer.layers["chief rays"]
+    assert len(boxes.data) == len(rays.data) == 9
+    assert list(boxes.features["lens"]) == list(range(9))
+    assert tuple(boxes.translate) == tuple(rays.translate) == (5, 7)
+    size, pad = tiny_system.sub_view_size, np.asarray(tiny_system.padding)
+    for lens, (vertices, ray) in enumerate(zip(boxes.data, rays.data, strict=True)):
+        chief = np.asarray(tiny_system.chief_rays[lens])
+        np.testing.assert_allclose(vertices.min(0), chief - size // 2 - pad - 0.5)
+        np.testing.assert_allclose(vertices.max(0), chief - size // 2 - pad + size - 0.5)
+        np.testing.assert_allclose(ray, chief - pad)
+    assert raw.metadata[SYSTEM_KEY] == tiny_system
+
+    moved = [vertices.copy() for vertices in boxes.data]
+    moved[2] += np.array([2.0, -3.0])  # nudge lens 2's box down 2 px and left 3 px
+    boxes.data = moved
+    expected = list(tiny_system.chief_rays)
+    expected[2] = (expected[2][0] + 2, expected[2][1] - 3)
+    assert widget.system.chief_rays == tuple(expected)
+    np.testing.assert_allclose(rays.data[2], np.asarray(expected[2]) - pad)
+    assert raw.metadata[SYSTEM_KEY] == widget.system
+
+    widget._out.value = tmp_path / "edited" / "system.json"
+    (tmp_path / "edited").mkdir()
+    widget.save()
+    saved = SystemConfig.load(tmp_path / "edited" / "system.json")
+    assert saved == tiny_system.replace(chief_rays=tuple(expected))
+
+    boxes.data = moved[:8]  # a deleted box is refused, the system is kept
+    assert "exactly nine boxes" in errors[-1]
+    assert widget.system == saved
+
+
+def test_calibration_refuses_a_system_of_another_sensor(tiny_system, make_napari_viewer, errors):
+    viewer = make_napari_viewer()
+    viewer.add_image(_raw_stack(tiny_system, 1)[0], name="raw")
+    widget = _dock(viewer, CalibrationWidget)
+    widget._system_choice.source.value = "cm2-mini"
+    widget.show_sub_views()
+    assert "480×640 sensor" in errors[-1] and "sub-views" not in viewer.layers
+
+
+# ---------------------------------------------------------------- reconstruct
+def test_reconstruct_frames_runs_the_current_frame_first(tiny_system, model_file):
+    from svcode_core.network import load_model
+
+    model, _ = load_model(model_file)
+    rec = Reconstructor(model, tiny_system, batch_size=8)
+    stack = _raw_stack(tiny_system, 3)
+    done = [item for item in reconstruct_frames(rec, stack, first=2, return_views=True)
+            if not isinstance(item, FrameProgress)]
+    assert [index for index, _ in done] == [2, 0, 1]
+    expected = rec.reconstruct(stack[1], return_views=True)
+    np.testing.assert_allclose(done[2][1].reconstruction, expected.reconstruction)
+    np.testing.assert_allclose(done[2][1].views, expected.views)
+
+
+def test_reconstruct_widget_adds_layers(qtbot, tiny_system, model_file, make_napari_viewer):
+    viewer = make_napari_viewer()
+    stack = _raw_stack(tiny_system, 3)
+    viewer.add_image(stack, name="raw", metadata=layer_metadata(tiny_system, "measurement"))
+    viewer.dims.set_current_step(0, 1)
+    widget = _dock(viewer, ReconstructWidget)
+    _use_model(widget, model_file)
+    widget._views.value = True
+    assert widget.start() is not None
+    qtbot.waitUntil(lambda: widget._run.enabled, timeout=30_000)
+    recon, views = viewer.layers["reconstruction"], viewer.layers["demixed views"]
+    size = tiny_system.sub_view_size
+    assert recon.data.shape == (3, size, size) and views.data.shape == (9, 3, size, size)
+    assert tuple(recon.translate) == (0, *object_translate(tiny_system))
+    assert tuple(views.translate) == (0, 0, *object_translate(tiny_system))
+    expected = widget_reconstructor(model_file, tiny_system).reconstruct(stack, True)
+    np.testing.assert_allclose(recon.data, expected.reconstruction, atol=1e-6)
+    np.testing.assert_allclose(views.data, expected.views.transpose(1, 0, 2, 3), atol=1e-6)
+    assert recon.metadata[SYSTEM_KEY] == tiny_system
+    assert recon.metadata["svcode_model"]["path"] == str(model_file)
+    assert widget.frames_done == 3 and widget._run.enabled
+
+
+def widget_reconstructor(path: Path, system: SystemConfig) -> Reconstructor:
+    return Reconstructor.from_weights(path, system, batch_size=8)
+
+
+def test_reconstruct_cancel_stops_within_a_batch(qtbot, monkeypatch, tiny_system, model_file,
+                                                 make_napari_viewer):
+    import napari_svcode.widgets.reconstruct as module
+    from svcode_core.network import load_model
+
+    calls, notices = [], []
+
+    class CountingModel(torch.nn.Module):
+        def __init__(self, inner: torch.nn.Module) -> None:
+            super().__init__()
+            self.inner = inner
+
+        def forward(self, *args):
+            calls.append(None)
+            time.sleep(0.005)  # at least 0.75 s in all, so the cancel lands mid-run
+            return self.inner(*args)
+
+    model = CountingModel(load_model(model_file)[0])
+    monkeypatch.setattr(module, "cached_model", lambda path, system: (model, tiny_system))
+    monkeypatch.setattr(module, "show_info", notices.append)
+    viewer = make_napari_viewer()
+    viewer.add_image(_raw_stack(tiny_system, 6), name="raw",
+                     metadata=layer_metadata(tiny_system, "measurement"))
+    widget = _dock(viewer, ReconstructWidget)
+    _use_model(widget, model_file)
+    widget._batch.value, widget._skip.value = 1, False  # 25 batches a frame, 150 in all
+    assert widget.start() is not None
+    qtbot.waitUntil(lambda: len(calls) >= 3, timeout=30_000)
+    widget.cancel()
+    at_cancel = len(calls)
+    qtbot.waitUntil(lambda: widget._run.enabled, timeout=30_000)
+    assert len(calls) <= at_cancel + 1  # at most the batch that was running
+    assert widget.frames_done < 6 and not widget._cancel.enabled
+    assert notices and "cancelled after" in notices[-1]
+
+
+def test_reconstruct_errors_are_notices(qtbot, tmp_path, tiny_system, model_file,
+                                        make_napari_viewer, errors):
+    viewer = make_napari_viewer()
+    widget = _dock(viewer, ReconstructWidget)
+    _use_model(widget, model_file)
+    meta = layer_metadata(tiny_system, "measurement")
+    wrong = viewer.add_image(np.zeros((50, 50), np.float32), name="wrong", metadata=meta)
+    widget._layer.value = wrong
+    assert widget.start() is None and "expects raw sensor frames of 60×80" in errors[-1]
+
+    frame = _raw_stack(tiny_system, 1)[0]
+    frame[3, 4] = np.nan
+    widget._layer.value = viewer.add_image(frame, name="nan", metadata=meta)
+    assert widget.start() is None and "1 NaN or Inf" in errors[-1]
+
+    other = _model_file(tmp_path / "other.safetensors", tiny_system.replace(name="other"))
+    _use_model(widget, other)
+    assert widget.start() is None and "trained for system 'other'" in errors[-1]
+    assert "choose a model trained for this system" in errors[-1]
+
+    widget._model.source.value = widget._model.BUNDLED
+    assert widget.start() is None and "bundled" in errors[-1]
+    assert len(errors) == 4 and widget.worker is None
+
+    _use_model(widget, model_file)  # the viewer stays usable
+    widget._layer.value = viewer.add_image(_raw_stack(tiny_system, 1)[0], name="ok",
+                                           metadata=meta)
+    assert widget.start() is not None
+    qtbot.waitUntil(lambda: widget._run.enabled, timeout=30_000)
+    assert viewer.layers["reconstruction"].data.shape == (tiny_system.sub_view_size,) * 2
+
+
+# ---------------------------------------------------------------------- masks
+def test_mask_widget_shows_a_cached_mask(qtbot, tiny_system, model_file, make_napari_viewer):
+    viewer = make_napari_viewer()
+    widget = _dock(viewer, MaskWidget)
+    _use_model(widget, model_file)
+    widget.load_model()
+    assert widget._stage.choices == ("demix", "recon")
+    widget._stage.value, widget._block.value, widget._gate.value = "recon", "view", "conv2"
+    widget._lens.value, widget._channel.value = 5, 1
+    assert widget.show_mask() is not None
+    qtbot.waitUntil(lambda: len(widget.cache) == 1, timeout=20_000)
+    [layer] = [layer for layer in viewer.layers if layer.name.startswith("mask")]
+    assert layer.name == "mask recon/view/conv2 lens 5 ch 1"
+    model = widget._loaded[1]
+    expected = model.coordinate_mask("recon", "view", "conv2", tiny_system.sub_view_size, lens=5)
+    np.testing.assert_allclose(layer.data, expected[1].numpy(), atol=1e-6)
+    assert tuple(layer.translate) == object_translate(tiny_system)
+
+    viewer.layers.remove(layer)
+    assert widget.show_mask() is None  # served from the cache, no worker
+    assert len(widget.cache) == 1 and layer.name in viewer.layers
+
+
+# ------------------------------------------------------------------- simulate
+def test_simulate_widget_makes_a_raw_frame(qtbot, tmp_path, tiny_system, make_napari_viewer):
+    viewer = make_napari_viewer()
+    viewer.add_image(np.random.default_rng(2).random((70, 90)), name="cells")
+    widget = _dock(viewer, SimulateWidget)
+    widget._system_choice.source.value = widget._system_choice.FROM_FILE
+    widget._system_choice.path.value = tiny_system.save(tmp_path / "system.json")
+    assert widget.start() is not None
+    qtbot.waitUntil(lambda: "cells (simulated raw)" in viewer.layers, timeout=20_000)
+    layer = viewer.layers["cells (simulated raw)"]
+    assert layer.data.shape == tiny_system.sensor_shape and layer.data.max() > 0
+    assert layer.metadata[SYSTEM_KEY] == tiny_system
+
+
+# ----------------------------------------------------------------- screenshot
+def test_screenshot_raw_frame_boxes_and_reconstruction(qtbot, tmp_path, make_napari_viewer):
+    """The README picture: cm2-mini vessels sample, its sub-views and a reconstruction."""
+    from skimage.io import imsave
+
+    from napari_svcode._resources import bundled_model
+
+    system = SystemConfig.preset("cm2-mini")
+    viewer = make_napari_viewer(show=True)
+    viewer.window.resize(1200, 800)
+    viewer.open_sample("napari-svcode", "vessels")
+    _, calibration = viewer.window.add_plugin_dock_widget("napari-svcode", "Calibration")
+    assert isinstance(calibration, CalibrationWidget)  # the manifest's widget, given the viewer
+    calibration._layer.value = viewer.layers["vessels raw"]
+    calibration.show_sub_views()
+    _, widget = viewer.window.add_plugin_dock_widget("napari-svcode", "Reconstruct")
+    weights = bundled_model(system.name)
+    if weights is None:  # until a trained model ships: a random one, one tile a frame
+        weights = _model_file(tmp_path / "mini.safetensors", system)
+        widget._tile.value = system.sub_view_size
+    _use_model(widget, weights)
+    widget._layer.value = viewer.layers["vessels raw"]
+    assert widget.start() is not None
+    qtbot.waitUntil(lambda: widget._run.enabled, timeout=120_000)
+    recon = viewer.layers["reconstruction"]
+    recon.blending, recon.opacity = "additive", 0.8
+    viewer.layers.selection.active = viewer.layers["sub-views"]
+    viewer.reset_view()
+    qtbot.wait(200)
+    image = viewer.screenshot(canvas_only=False, flash=False)
+    assert image.ndim == 3 and image.shape[0] > 400
+    assert image[..., :3].std() > 20, "screenshot looks blank"
+    SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
+    imsave(SCREENSHOT, image[..., :3], check_contrast=False)
