@@ -4,10 +4,16 @@ Two scales:
   * ``cm2-mini``: ``ModelConfig.mini()``, a batch of 4 tiles of 96 × 96 (S = 384);
   * ``paper``: ``ModelConfig.reference()``, one tile of 480 × 480 (S = 2400).
 
-Three variants each: the plain NAFNet of the same widths (``coord_gate=False``), SV-CoDe
-with masks computed on every call, and SV-CoDe with the mask cache warm (the tile grid was
-seen once before, as for every frame after the first of a stack). Inference is under
-``torch.inference_mode``; latency is the median of ``--iters`` calls after one warm-up call.
+Variants: the plain NAFNet of the same widths (``coord_gate=False``), SV-CoDe with masks
+computed on every call, and SV-CoDe with the mask cache warm (the tile grid was seen once
+before, as for every frame after the first of a stack) under the default 1 GiB budget. The
+cache holds each CoDe block's folded masks over the whole sub-view; the ``field (MiB)``
+column is what a whole ``S × S`` sub-view needs (``mask_field_bytes``). At paper scale that
+is ~50 GiB, so under 1 GiB most masks are still computed per call; the ``cached-full`` row
+runs the same tile as the whole sub-view (``S = 480``) so every mask is cached: the
+per-call work is that of a fully cached ``S = 2400`` field (same tile, same masks read),
+only the field is smaller. Inference is under ``torch.inference_mode``; latency is the
+median of ``--iters`` calls after one warm-up call.
 
 Peak memory: every variant runs in a fresh process; a sampling thread reads the process
 resident set size (psutil) every 2 ms and the peak above the level just before the first
@@ -38,7 +44,9 @@ SCALES = {
     "cm2-mini": {"config": "mini", "tile": 96, "batch": 4, "sub_view": 384, "stride": 48},
     "paper": {"config": "reference", "tile": 480, "batch": 1, "sub_view": 2400, "stride": 240},
 }
-VARIANTS = ("plain", "uncached", "cached")
+VARIANTS = ("plain", "uncached", "cached", "cached-full")
+SCALE_VARIANTS = {"cm2-mini": VARIANTS[:3], "paper": VARIANTS}
+DEFAULT_BUDGET = 2**30
 
 
 class PeakRSS:
@@ -78,16 +86,19 @@ def measure(scale: str, variant: str, iters: int, threads: int) -> dict:
     tile, batch = spec["tile"], spec["batch"]
     views = torch.rand(batch, 9, tile, tile)
     origins = [[(i // 2) * spec["stride"], (i % 2) * spec["stride"]] for i in range(batch)]
-    if variant == "cached":
-        model.cache_masks(max_bytes=16 * 2**30)
+    sub_view = tile if variant == "cached-full" else spec["sub_view"]
+    if variant.startswith("cached"):
+        model.cache_masks(max_bytes=max(DEFAULT_BUDGET, model.mask_field_bytes(sub_view))
+                          if variant == "cached-full" else DEFAULT_BUDGET)
     times = []
     with PeakRSS() as rss, torch.inference_mode():
-        model(views, origins, spec["sub_view"])  # warm-up (fills the cache)
+        model(views, origins, sub_view)  # warm-up (fills the cache)
         for _ in range(iters):
             start = time.perf_counter()
-            model(views, origins, spec["sub_view"])
+            model(views, origins, sub_view)
             times.append(time.perf_counter() - start)
     info = model.mask_cache_info()
+    field = model.mask_field_bytes(spec["sub_view"]) if variant != "plain" else 0
     return {
         "scale": scale,
         "variant": variant,
@@ -96,6 +107,8 @@ def measure(scale: str, variant: str, iters: int, threads: int) -> dict:
         "latency_s": statistics.median(times),
         "peak_mib": rss.megabytes,
         "cache_mib": info["bytes"] / 2**20,
+        "field_mib": field / 2**20,
+        "sub_view": sub_view,
         "tile": tile,
         "batch": batch,
         "threads": threads,
@@ -119,7 +132,7 @@ def main() -> None:
     kept = json.loads(saved.read_text()) if saved.is_file() else []
     rows = [r for r in kept if r["scale"] not in args.scales]
     for scale in args.scales:
-        for variant in VARIANTS:
+        for variant in SCALE_VARIANTS[scale]:
             out = subprocess.run(
                 [sys.executable, __file__, "--one", scale, variant, "--iters", str(args.iters),
                  "--paper-iters", str(args.paper_iters), "--threads", str(args.threads)],
@@ -130,7 +143,7 @@ def main() -> None:
     rows.sort(key=lambda r: (list(SCALES).index(r["scale"]), VARIANTS.index(r["variant"])))
     for scale in {r["scale"] for r in rows}:
         by = {r["variant"]: r for r in rows if r["scale"] == scale}
-        for variant in ("uncached", "cached"):
+        for variant in set(by) - {"plain"}:
             by[variant]["latency_vs_plain"] = by[variant]["latency_s"] / by["plain"]["latency_s"]
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "network.json").write_text(json.dumps(rows, indent=2) + "\n")
@@ -139,7 +152,7 @@ def main() -> None:
 
 
 def _line(row: dict) -> str:
-    return (f"{row['scale']:9s} {row['variant']:9s} params {row['parameters'] / 1e6:5.2f} M  "
+    return (f"{row['scale']:9s} {row['variant']:11s} params {row['parameters'] / 1e6:5.2f} M  "
             f"latency {row['latency_s'] * 1e3:8.1f} ms  peak {row['peak_mib']:7.0f} MiB")
 
 
@@ -151,18 +164,21 @@ def _markdown(rows: list[dict]) -> str:
         "`torch.inference_mode`. Latency: median per forward call (demixing + "
         "reconstruction) of the whole batch. Peak: resident "
         "memory above the level before the first call, fresh process per row (includes the "
-        "mask cache). Target: cached SV-CoDe ≤ 1.15 × plain NAFNet.",
+        "mask cache). Cache budget 1 GiB; field: cache needed for a whole S × S sub-view "
+        "(float32). `cached-full`: the tile is the whole sub-view (S = 480) so every mask is "
+        "cached. Target: cached SV-CoDe ≤ 1.15 × plain NAFNet.",
         "",
-        "| scale | tile × batch | threads | variant | params (M) | MLP params (M) "
-        "| latency (ms) | × plain | peak (MiB) | cache (MiB) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| scale | tile × batch | S | threads | variant | params (M) | MLP params (M) "
+        "| latency (ms) | × plain | peak (MiB) | cache (MiB) | field (MiB) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         ratio = f"{r['latency_vs_plain']:.2f}" if "latency_vs_plain" in r else "1"
         lines.append(
-            f"| {r['scale']} | {r['tile']}² × {r['batch']} | {r['threads']} | {r['variant']} | "
-            f"{r['parameters'] / 1e6:.3f} | {r['mlp_parameters'] / 1e6:.3f} | "
-            f"{r['latency_s'] * 1e3:.1f} | {ratio} | {r['peak_mib']:.0f} | {r['cache_mib']:.0f} |"
+            f"| {r['scale']} | {r['tile']}² × {r['batch']} | {r['sub_view']} | {r['threads']} "
+            f"| {r['variant']} | {r['parameters'] / 1e6:.3f} | {r['mlp_parameters'] / 1e6:.3f} "
+            f"| {r['latency_s'] * 1e3:.1f} | {ratio} | {r['peak_mib']:.0f} "
+            f"| {r['cache_mib']:.0f} | {r['field_mib']:.0f} |"
         )
     return "\n".join(lines) + "\n"
 

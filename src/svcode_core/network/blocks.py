@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .coordgate import CoordGate, CoordGrid
+from .coordgate import CoordGate, CoordGrid, tile_masks
 
 __all__ = ["CoDeBlock", "LayerNorm2d", "SimpleChannelAttention", "SimpleGate", "ViewFusion"]
 
@@ -52,6 +52,12 @@ class CoDeBlock(nn.Module):
     ``x + β·conv3(SCA(SimpleGate(conv2(conv1(LN(x))))))``, then
     ``y + γ·conv5(SimpleGate(conv4(LN(y))))``; β and γ start at zero.
 
+    With cached masks (no gradient) the block runs on *folded* masks
+    (:meth:`folded_masks`): the two halves of the conv2 and conv4 masks meet in a
+    SimpleGate, ``(Ma⊙a)⊙(Mb⊙b) = (Ma⊙Mb)⊙(a⊙b)``, so each pair becomes one mask of ``c``
+    channels applied after the gate, and β and γ scale the conv3 and conv5 masks, whose
+    products are then added to the residual in one ``addcmul``.
+
     Parameters
     ----------
     channels : int
@@ -84,13 +90,83 @@ class CoDeBlock(nn.Module):
         self.conv4 = gate(c, 2 * c)
         self.conv5 = gate(c, c)
         self.gamma = nn.Parameter(torch.zeros(1, c, 1, 1))
+        self.cache_name = ""  # set by the owning model: the block's key in the mask cache
 
     def forward(self, x: torch.Tensor, grid: CoordGrid | None) -> torch.Tensor:
+        if grid is not None and self.conv1.mlp is not None and grid.cached:
+            return self._forward_cached(x, grid)
         z = self.conv2(self.conv1(self.norm1(x), grid), grid)
         z = self.conv3(self.sca(self.gate(z)), grid)
         y = x + self.beta * z
         z = self.conv5(self.gate(self.conv4(self.norm2(y), grid)), grid)
         return y + self.gamma * z
+
+    def folded_masks(
+        self, enc_row: torch.Tensor, enc_col: torch.Tensor
+    ) -> tuple[torch.Tensor, ...]:
+        """The block's masks folded as in the class docstring.
+
+        Returns
+        -------
+        tuple of torch.Tensor
+            conv1 ``(B, lenses, 2c, h, w)``, then the conv2 pair, β·conv3, the conv4
+            pair and γ·conv5 ``(B, lenses, c, h, w)``, in the MLPs' dtype.
+        """
+        c = self.beta.shape[1]
+        m2 = self.conv2.masks(enc_row, enc_col)
+        m4 = self.conv4.masks(enc_row, enc_col)
+        return (
+            self.conv1.masks(enc_row, enc_col),
+            m2[:, :, :c] * m2[:, :, c:],
+            self.conv3.masks(enc_row, enc_col) * self.beta.view(c, 1, 1),
+            m4[:, :, :c] * m4[:, :, c:],
+            self.conv5.masks(enc_row, enc_col) * self.gamma.view(c, 1, 1),
+        )
+
+    def _forward_cached(self, x: torch.Tensor, grid: CoordGrid) -> torch.Tensor:
+        c, mlp = self.beta.shape[1], self.conv1.mlp
+        dtype = _mask_dtype(x.device, mlp.w_out.dtype)
+        shapes = [(mlp.lenses, 2 * c)] + [(mlp.lenses, c)] * 4
+        pixel_bytes = mlp.lenses * (mlp.w_out.shape[-1] + 8 * c) * mlp.w_out.element_size()
+        masks = tile_masks(grid, self.cache_name, self.folded_masks, shapes, pixel_bytes, dtype)
+        m1, m2, m3, m4, m5 = zip(*masks, strict=True)
+        z = _multiply(self.conv1.conv(self.norm1(x)), m1)
+        z = _multiply(self.gate(self.conv2.conv(z)), m2)
+        y = _add_product(x, m3, self.conv3.conv(self.sca(z)))
+        z = _multiply(self.gate(self.conv4.conv(self.norm2(y))), m4)
+        return _add_product(y, m5, self.conv5.conv(z))
+
+
+def _mask_dtype(device: torch.device, default: torch.dtype) -> torch.dtype:
+    """The dtype masks are stored and applied in: autocast's, else the parameters'."""
+    if torch.is_autocast_enabled(device.type):
+        return torch.get_autocast_dtype(device.type)
+    return default
+
+
+def _tiles(t: torch.Tensor, batch: int) -> torch.Tensor:
+    """``(B·V, C, h, w)`` viewed as ``(B, V, C, h, w)``."""
+    return t.view(batch, -1, *t.shape[1:])
+
+
+def _multiply(y: torch.Tensor, masks: tuple[torch.Tensor, ...]) -> torch.Tensor:
+    """``y`` (a temporary) multiplied in place by the mask of each tile."""
+    for tile, mask in zip(_tiles(y, len(masks)), masks, strict=True):
+        tile.mul_(mask)
+    return y
+
+
+def _add_product(
+    x: torch.Tensor, masks: tuple[torch.Tensor, ...], z: torch.Tensor
+) -> torch.Tensor:
+    """``x + mask ⊙ z`` tile by tile, in one pass per tile."""
+    dtype = torch.promote_types(torch.promote_types(x.dtype, z.dtype), masks[0].dtype)
+    out = torch.empty_like(x, dtype=dtype)
+    batch = len(masks)
+    for o, xb, m, zb in zip(_tiles(out, batch), _tiles(x, batch), masks, _tiles(z, batch),
+                            strict=True):
+        torch.addcmul(xb, m, zb, out=o)
+    return out
 
 
 class ViewFusion(nn.Module):

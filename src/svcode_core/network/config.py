@@ -18,6 +18,9 @@ PE_SCHEMES = ("paper", "code")
 _BLOCK_LISTS = ("demix_enc_blocks", "demix_dec_blocks", "recon_enc_blocks", "recon_dec_blocks")
 
 
+OUTPUTS = ("sigmoid", "linear")
+
+
 @dataclass(frozen=True)
 class ModelConfig:
     """Sizes and switches of the SV-CoDe network.
@@ -47,6 +50,12 @@ class ModelConfig:
         ``False`` feeds the raw ``(v, u)`` to the MLPs.
     lens_specific_first_block : bool
         The first (view-dependent) block has one MLP per lens; ``False`` shares one.
+    output : {"sigmoid", "linear"}
+        Output activation of both stages. ``"sigmoid"`` is the published design.
+        ``"linear"`` leaves the last convolution unbounded while training and clamps it
+        at zero in evaluation mode: trained from scratch on dark CM² scenes, sigmoid
+        outputs can saturate at zero early on and never recover (measured on
+        ``cm2-mini``: every demixed view ≈ 1e-6 after one epoch), linear ones cannot.
     """
 
     width: int = 32
@@ -63,6 +72,7 @@ class ModelConfig:
     coord_gate: bool = True
     positional_encoding: bool = True
     lens_specific_first_block: bool = True
+    output: str = "sigmoid"
 
     def __post_init__(self) -> None:
         for name in _BLOCK_LISTS:  # JSON gives lists; keep the dataclass hashable
@@ -78,7 +88,8 @@ class ModelConfig:
 
     @classmethod
     def mini(cls) -> ModelConfig:
-        """A small model for the ``cm2-mini`` CPU preset (width 16, 3 + 2 levels)."""
+        """A small model for the ``cm2-mini`` CPU preset (width 16, 3 + 2 levels, linear
+        outputs clamped at zero)."""
         return cls(
             width=16,
             view_width=4,
@@ -87,6 +98,7 @@ class ModelConfig:
             recon_enc_blocks=(1, 1),
             recon_dec_blocks=(1, 1),
             mlp_hidden=32,
+            output="linear",
         ).validate()
 
     # ------------------------------------------------------------------ derived
@@ -126,6 +138,8 @@ class ModelConfig:
                 )
         if self.pe_scheme not in PE_SCHEMES:
             raise ConfigError(f"pe_scheme: must be one of {PE_SCHEMES}, got {self.pe_scheme!r}")
+        if self.output not in OUTPUTS:
+            raise ConfigError(f"output: must be one of {OUTPUTS}, got {self.output!r}")
         for name in ("coord_gate", "positional_encoding", "lens_specific_first_block"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"{name}: must be true or false, got {getattr(self, name)!r}")

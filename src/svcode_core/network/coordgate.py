@@ -2,24 +2,37 @@
 
 ``CoordGate(F) = M(r) ⊙ (W ∗ F)`` with ``M(r) = sigmoid(MLP(γ(r)))`` per channel. The MLP
 sees only the positional encoding of the global pixel coordinates ``r = (v, u)``, so the
-masks can be computed once per tile position and cached (:class:`MaskCache`).
+masks are a fixed function of the position in the sub-view and can be computed once and
+frozen (:class:`MaskCache`, :func:`tile_masks`).
 
 The first MLP layer acts on the concatenation ``[γ(v), γ(u)]``, so it splits exactly into
 a row term plus a column term; it is evaluated on the ``h + w`` axis samples and
 broadcast, and only the output layer runs per pixel.
+
+Mask cache
+    Masks are cached per layer over the whole (padded) sub-view grid of a U-Net level, a
+    *field*, and every tile crops a view of it. A tile can use the field when its origin
+    is a multiple of the level stride ``2^k`` (then its level-``k`` grid is a subgrid of
+    the field's) and it lies inside the field; other tiles get masks computed for them.
+    Memory is therefore set by ``S`` and the model, not by the number of tiles. Fields
+    are stored channels-last like the features (:mod:`.models`), so a tile's crop is
+    read in runs of ``w · C`` contiguous values.
 """
 
 from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from collections.abc import Hashable, Iterator
+from collections.abc import Callable, Hashable, Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import nn
 
-__all__ = ["CoordGate", "CoordGrid", "CoordMLP", "MaskCache"]
+__all__ = ["CoordGate", "CoordGrid", "CoordMLP", "MaskCache", "MaskField", "tile_masks"]
+
+FIELD_CHUNK_BYTES = 1 << 26
+"""Bound on the working memory (hidden activations and masks) while a field is computed."""
 
 
 class CoordMLP(nn.Module):
@@ -69,71 +82,100 @@ class CoordMLP(nn.Module):
         Returns
         -------
         torch.Tensor
-            ``(B, lenses, C, h, w)`` in ``(0, 1)``.
+            ``(B, lenses, C, h, w)`` in ``(0, 1)``, channels-last (channels vary fastest)
+            like the features it gates.
         """
-        batch, h, w = enc_row.shape[0], enc_row.shape[1], enc_col.shape[1]
-        rows = torch.einsum("bhe,nke->bnkh", enc_row, self.w_row)
-        cols = torch.einsum("bwe,nke->bnkw", enc_col, self.w_col)
-        hidden = torch.relu(rows.unsqueeze(-1) + cols.unsqueeze(-2) + self.b_hidden)
+        lenses, hidden_size = self.w_row.shape[:2]
+        rows = torch.einsum("bhe,nke->bnhk", enc_row, self.w_row)
+        cols = torch.einsum("bwe,nke->bnwk", enc_col, self.w_col)
+        bias = self.b_hidden.view(lenses, 1, 1, hidden_size)
+        hidden = torch.relu(rows.unsqueeze(-2) + cols.unsqueeze(-3) + bias)
         w_out, b_out = self.w_out, self.b_out
         if channels is not None:
             w_out, b_out = w_out[:, channels], b_out[:, channels]
-        logits = torch.matmul(w_out, hidden.flatten(-2)) + b_out
-        return torch.sigmoid(logits).view(batch, self.lenses, -1, h, w)
+        logits = torch.matmul(hidden, w_out.transpose(1, 2).unsqueeze(1))
+        logits = logits + b_out.view(lenses, 1, 1, -1)
+        return torch.sigmoid(logits).permute(0, 1, 4, 2, 3)
 
 
 class MaskCache:
-    """Frozen masks keyed by (gate name, tile origin, padded size, sub-view size).
+    """Frozen masks (tuples of tensors) under hashable keys, bounded in bytes.
 
-    Least-recently-used entries are dropped once the stored bytes exceed ``max_bytes``;
-    an entry larger than the whole budget is not stored. The owner calls
-    :meth:`check_weights` before each use so that changed MLP weights drop everything.
+    Least-recently-used entries make room for new ones, except entries used during the
+    current or the previous forward call (:meth:`new_call`), the working set: when the
+    masks of one call do not all fit, the first ones stay cached and the rest are
+    computed each time, instead of every new entry evicting one needed later in the call
+    (an LRU cycling through more than it holds never hits). Entries of a pattern no
+    longer in use (another sub-view size, dtype or tile size) become evictable one call
+    later. The owner calls :meth:`check_weights` before each call so that changed
+    weights drop everything.
     """
 
     def __init__(self, max_bytes: int) -> None:
         if not isinstance(max_bytes, int) or max_bytes < 0:
             raise ValueError(f"max_bytes must be a non-negative integer, got {max_bytes!r}")
         self.max_bytes = max_bytes
-        self._entries: OrderedDict[Hashable, torch.Tensor] = OrderedDict()
+        self._entries: OrderedDict[Hashable, tuple[tuple[torch.Tensor, ...], int]] = OrderedDict()
         self._bytes = 0
         self._weights_key: Hashable = None
+        self._call = 0
         self.hits = 0
         self.misses = 0
 
     def check_weights(self, key: Hashable) -> None:
-        """Drop every entry if ``key`` (a fingerprint of the MLP weights) changed."""
+        """Drop every entry if ``key`` (a fingerprint of the mask weights) changed."""
         if key != self._weights_key:
             self.clear()
             self._weights_key = key
+
+    def new_call(self) -> None:
+        """Start a forward call: entries it uses are not evicted during it or the next one."""
+        self._call += 1
 
     def clear(self) -> None:
         """Drop every entry (the hit and miss counters are kept)."""
         self._entries.clear()
         self._bytes = 0
 
-    def get(self, key: Hashable) -> torch.Tensor | None:
+    def get(self, key: Hashable) -> tuple[torch.Tensor, ...] | None:
         """The entry for ``key`` (marked most recently used), or ``None``."""
-        mask = self._entries.get(key)
-        if mask is None:
+        entry = self._entries.get(key)
+        if entry is None:
             self.misses += 1
             return None
         self.hits += 1
+        self._entries[key] = (entry[0], self._call)
         self._entries.move_to_end(key)
-        return mask
+        return entry[0]
 
-    def put(self, key: Hashable, mask: torch.Tensor) -> None:
-        """Store ``mask`` (detached, not copied), evicting least recently used entries."""
-        size = mask.numel() * mask.element_size()
-        if size > self.max_bytes:
-            return
+    def reserve(self, nbytes: int) -> bool:
+        """Make room for ``nbytes`` by evicting entries outside the working set, if that
+        suffices (otherwise nothing is evicted); whether ``nbytes`` fit."""
+        evictable = [
+            (key, _nbytes(mask))
+            for key, (mask, call) in self._entries.items()
+            if call < self._call - 1
+        ]
+        if self._bytes - sum(size for _, size in evictable) + nbytes > self.max_bytes:
+            return False
+        for key, size in evictable:  # least recently used first
+            if self._bytes + nbytes <= self.max_bytes:
+                break
+            del self._entries[key]
+            self._bytes -= size
+        return True
+
+    def put(self, key: Hashable, masks: tuple[torch.Tensor, ...]) -> bool:
+        """Store ``masks`` (detached, not copied) if :meth:`reserve` makes room; whether stored."""
         old = self._entries.pop(key, None)
         if old is not None:
-            self._bytes -= old.numel() * old.element_size()
-        self._entries[key] = mask.detach()
+            self._bytes -= _nbytes(old[0])
+        size = _nbytes(masks)
+        if not self.reserve(size):
+            return False
+        self._entries[key] = (tuple(m.detach() for m in masks), self._call)
         self._bytes += size
-        while self._bytes > self.max_bytes:
-            _, dropped = self._entries.popitem(last=False)
-            self._bytes -= dropped.numel() * dropped.element_size()
+        return True
 
     def info(self) -> dict[str, int]:
         """``entries``, ``bytes``, ``max_bytes``, ``hits`` and ``misses``."""
@@ -146,6 +188,31 @@ class MaskCache:
         }
 
 
+def _nbytes(masks: tuple[torch.Tensor, ...]) -> int:
+    return sum(m.numel() * m.element_size() for m in masks)
+
+
+@dataclass(frozen=True)
+class MaskField:
+    """The whole-field grid of one U-Net level and where each tile sits in it.
+
+    Attributes
+    ----------
+    key : tuple
+        Identifies the field (sub-view size, level, cells per side).
+    enc_row, enc_col : torch.Tensor
+        Encodings ``(1, rows, E)`` and ``(1, cols, E)`` of the field's grid.
+    offsets : tuple
+        Per tile, its first ``(row, col)`` in field cells, or ``None`` when the tile is
+        not a subgrid of the field (unaligned origin, or outside).
+    """
+
+    key: tuple
+    enc_row: torch.Tensor
+    enc_col: torch.Tensor
+    offsets: tuple[tuple[int, int] | None, ...]
+
+
 @dataclass
 class CoordGrid:
     """Coordinates of a batch of tiles at one U-Net level.
@@ -153,22 +220,115 @@ class CoordGrid:
     Attributes
     ----------
     enc_row, enc_col : torch.Tensor
-        Positional encodings ``(B, h, E)`` and ``(B, w, E)``.
-    keys : tuple
-        One hashable per batch element identifying its tile (origin, padded size, ``S``).
+        Positional encodings ``(B, h, E)`` and ``(B, w, E)``, or ``(U, h, E)`` and
+        ``(U, w, E)`` for the ``U`` distinct tile origins when ``tiles`` is set.
     cache : MaskCache or None
         Where masks are looked up; ``None`` computes them every time.
+    field : MaskField or None
+        The level's whole-field grid (set when ``cache`` is).
+    tiles : torch.Tensor or None
+        ``(B,)`` index of each tile's origin among the encodings: tiles at the same
+        origin share one mask computation (set only on the uncached path).
     """
 
     enc_row: torch.Tensor
     enc_col: torch.Tensor
-    keys: tuple[Hashable, ...]
     cache: MaskCache | None = None
+    field: MaskField | None = None
+    tiles: torch.Tensor | None = None
 
     @property
     def batch(self) -> int:
         """Number of tiles."""
-        return self.enc_row.shape[0]
+        return self.enc_row.shape[0] if self.tiles is None else self.tiles.shape[0]
+
+    @property
+    def cached(self) -> bool:
+        """Whether masks come from the cache (a cache is set and no gradient is needed)."""
+        return self.cache is not None and not torch.is_grad_enabled()
+
+
+Masks = tuple[torch.Tensor, ...]
+MaskFunction = Callable[[torch.Tensor, torch.Tensor], Masks]
+
+
+def tile_masks(
+    grid: CoordGrid,
+    name: Hashable,
+    compute: MaskFunction,
+    shapes: Sequence[tuple[int, int]],
+    pixel_bytes: int,
+    dtype: torch.dtype,
+) -> list[Masks]:
+    """Per-tile masks, cropped from the cached field where possible.
+
+    Parameters
+    ----------
+    grid : CoordGrid
+        With ``cache`` and ``field`` set.
+    name : hashable
+        Identifies the masks (the layer) in the cache.
+    compute : callable
+        ``compute(enc_row (B, h, E), enc_col (B, w, E))`` returns a tuple of masks
+        ``(B, lenses, C_i, h, w)``.
+    shapes : sequence of (int, int)
+        ``(lenses, C_i)`` of each mask.
+    pixel_bytes : int
+        Working memory of ``compute`` per pixel, to evaluate a field in row chunks.
+    dtype : torch.dtype
+        Of the returned (and stored) masks, which are channels-last.
+
+    Returns
+    -------
+    list of tuple of torch.Tensor
+        Per tile, its masks ``(lenses, C_i, h, w)`` (views into the cached field for the
+        tiles that fit it).
+    """
+    field, cache = grid.field, grid.cache
+    h, w = grid.enc_row.shape[1], grid.enc_col.shape[1]
+    full = None
+    if any(o is not None for o in field.offsets):
+        key = (name, field.key, dtype)
+        full = cache.get(key)
+        if full is None:
+            cells = field.enc_row.shape[1] * field.enc_col.shape[1]
+            if cache.reserve(sum(math.prod(s) for s in shapes) * cells * dtype.itemsize):
+                full = _field_masks(field, compute, shapes, pixel_bytes, dtype)
+                cache.put(key, full)
+    out: list[Masks | None] = [
+        None if full is None or o is None
+        else tuple(m[..., o[0] : o[0] + h, o[1] : o[1] + w] for m in full)
+        for o in field.offsets
+    ]
+    missing = [b for b, masks in enumerate(out) if masks is None]
+    if missing:
+        index = torch.tensor(missing, device=grid.enc_row.device)
+        computed = compute(grid.enc_row[index], grid.enc_col[index])
+        for i, b in enumerate(missing):
+            out[b] = tuple(m[i].to(dtype, memory_format=torch.channels_last) for m in computed)
+    return out
+
+
+def _field_masks(
+    field: MaskField,
+    compute: MaskFunction,
+    shapes: Sequence[tuple[int, int]],
+    pixel_bytes: int,
+    dtype: torch.dtype,
+) -> Masks:
+    """The masks of the whole field ``(lenses, C_i, rows, cols)``, computed in row chunks."""
+    rows, cols = field.enc_row.shape[1], field.enc_col.shape[1]
+    full = tuple(
+        torch.empty(*shape, rows, cols, dtype=dtype, device=field.enc_row.device,
+                    memory_format=torch.channels_last)
+        for shape in shapes
+    )
+    chunk = max(1, FIELD_CHUNK_BYTES // (pixel_bytes * cols))
+    for start in range(0, rows, chunk):
+        parts = compute(field.enc_row[:, start : start + chunk], field.enc_col)
+        for target, part in zip(full, parts, strict=True):
+            target[:, :, start : start + chunk] = part[0]
+    return full
 
 
 class CoordGate(nn.Module):
@@ -210,28 +370,23 @@ class CoordGate(nn.Module):
             if mlp_hidden is None
             else CoordMLP(axis_features, mlp_hidden, out_channels, lenses)
         )
-        self.cache_name = ""  # set by the owning model: the key prefix in the mask cache
 
     def forward(self, x: torch.Tensor, grid: CoordGrid | None) -> torch.Tensor:
-        """``M(r) ⊙ conv(x)``; ``x`` is ``(B·V, C, h, w)`` with ``V`` views per tile."""
+        """``M(r) ⊙ conv(x)``; ``x`` is ``(B·V, C, h, w)`` with ``V`` views per tile.
+
+        The masks are computed here; the cached inference path is
+        :meth:`~.blocks.CoDeBlock.forward`, which folds the masks of a whole block.
+        """
         y = self.conv(x)
         if self.mlp is None:
             return y
         if grid is None:
             raise ValueError("a CoordGate with a mask needs the tile coordinates")
         batch = grid.batch
-        shape = (batch, y.shape[0] // batch, *y.shape[1:])
-        if grid.cache is not None and not torch.is_grad_enabled():
-            masks = list(self._cached_masks(grid))
-            if all(m is masks[0] for m in masks):
-                y.view(shape).mul_(masks[0])
-            else:
-                y5 = y.view(shape)
-                for b, mask in enumerate(masks):
-                    y5[b].mul_(mask)
-            return y
         mask = self.masks(grid.enc_row, grid.enc_col)
-        return (y.view(shape) * mask.to(y.dtype)).view_as(y)
+        if grid.tiles is not None:
+            mask = mask[grid.tiles]
+        return (y.view(batch, -1, *y.shape[1:]) * mask.to(y.dtype)).view_as(y)
 
     def masks(
         self, enc_row: torch.Tensor, enc_col: torch.Tensor, channels: slice | None = None
@@ -242,17 +397,3 @@ class CoordGate(nn.Module):
         dtype = self.mlp.w_out.dtype
         with torch.autocast(enc_row.device.type, enabled=False):
             return self.mlp(enc_row.to(dtype), enc_col.to(dtype), channels)
-
-    def _cached_masks(self, grid: CoordGrid) -> Iterator[torch.Tensor]:
-        computed: dict[Hashable, torch.Tensor] = {}
-        for b, tile in enumerate(grid.keys):
-            if tile in computed:
-                yield computed[tile]
-                continue
-            key = (self.cache_name, tile)
-            mask = grid.cache.get(key)
-            if mask is None:
-                mask = self.masks(grid.enc_row[b : b + 1], grid.enc_col[b : b + 1])[0]
-                grid.cache.put(key, mask)
-            computed[tile] = mask
-            yield mask

@@ -5,7 +5,9 @@ Every model takes the nine stacked sub-view tiles ``(B, 9, H, W)``, the integer
 coordinates are global: pixel ``(i, j)`` of a tile sits at ``2(origin + (i, j))/(S-1) - 1``.
 Inputs of any size are zero-padded at the bottom and right to a multiple of the U-Net
 stride (the coordinates continue over the padding) and the outputs are cropped back.
-Outputs pass through a sigmoid.
+Outputs pass through a sigmoid, or are clamped at zero (``ModelConfig.output``).
+Features run in the channels-last (NHWC) memory format, which makes the cm2-mini network
+~1.7× faster on CPU; the math is unchanged.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from torch import nn
 from ..config import N_LENSES
 from .blocks import CoDeBlock, ViewFusion
 from .config import ModelConfig
-from .coordgate import CoordGate, CoordGrid, MaskCache
+from .coordgate import CoordGate, CoordGrid, MaskCache, MaskField
 from .encoding import encoding_size, level_coordinates, positional_encoding
 
 __all__ = ["DemixNet", "MaskLayer", "ReconNet", "SVCoDe", "UNet"]
@@ -114,7 +116,8 @@ class _ViewNet(nn.Module):
     Each view goes through a 3×3 convolution to ``view_width`` channels and the
     view-dependent CoDe block (shared convolutions, lens-specific mask MLPs); the
     features of the nine views are fused by :class:`~.blocks.ViewFusion` into ``width``
-    channels for the shared U-Net, and a 3×3 convolution and a sigmoid give the output.
+    channels for the shared U-Net, and a 3×3 convolution and the output activation
+    (:attr:`ModelConfig.output`) give the output.
     """
 
     stage = ""
@@ -146,16 +149,18 @@ class _ViewNet(nn.Module):
     def run(self, views: torch.Tensor, grids: Sequence[CoordGrid | None]) -> torch.Tensor:
         """Network on padded views ``(B, 9, H, W)``; ``grids[k]`` for level ``k``."""
         batch, lenses, h, w = views.shape
-        x = self.intro(views.reshape(batch * lenses, 1, h, w))
+        x = _channels_last(self.intro(views.reshape(batch * lenses, 1, h, w)))
         x = self.view_block(x, grids[0])
-        x = self.fusion(x.reshape(batch, lenses * x.shape[1], h, w))
-        return torch.sigmoid(self.ending(self.unet(x, grids)))
+        x = self.fusion(_channels_last(x.reshape(batch, lenses * x.shape[1], h, w)))
+        out = self.ending(self.unet(x, grids))
+        if self.config.output == "sigmoid":
+            return torch.sigmoid(out)
+        return out if self.training else out.clamp_min(0)
 
     def named_gates(self) -> list[tuple[MaskLayer, CoordGate]]:
         """Every gated convolution of this stage with its description."""
-        blocks = [("view", self.view_block, 0), *self.unet.named_blocks()]
         out = []
-        for block_name, block, level in blocks:
+        for block_name, block, level in self.named_blocks():
             for layer in ("conv1", "conv2", "conv3", "conv4", "conv5"):
                 gate = getattr(block, layer)
                 if gate.mlp is not None:
@@ -163,6 +168,23 @@ class _ViewNet(nn.Module):
                                      gate.mlp.lenses, level)
                     out.append((info, gate))
         return out
+
+    def named_blocks(self) -> list[tuple[str, CoDeBlock, int]]:
+        """``(name, block, level)`` for every CoDe block of this stage."""
+        return [("view", self.view_block, 0), *self.unet.named_blocks()]
+
+
+def _field_cells(sub_view_size: int, levels: int) -> int:
+    """Level-0 side of the cached mask field: pixels ``0 .. S + 2**levels - 2`` rounded up
+    to the model stride, so a tile padded to the stride fits it whenever its unpadded
+    part lies inside the sub-view."""
+    stride = 2**levels
+    return math.ceil((sub_view_size + stride - 1) / stride) * stride
+
+
+def _channels_last(x: torch.Tensor) -> torch.Tensor:
+    """Features run channels-last (NHWC): faster convolutions on CPU."""
+    return x.contiguous(memory_format=torch.channels_last)
 
 
 class _MaskedModel(nn.Module):
@@ -175,10 +197,14 @@ class _MaskedModel(nn.Module):
         self.model_config = config
         self._mask_cache: MaskCache | None = None
         self._gates = {}
+        self._masked_blocks: list[tuple[CoDeBlock, int]] = []
         for stage in self._stages():
             for info, gate in stage.named_gates():
-                gate.cache_name = f"{info.stage}/{info.block}/{info.layer}"
                 self._gates[(info.stage, info.block, info.layer)] = (info, gate)
+            for name, block, level in stage.named_blocks():
+                if block.conv1.mlp is not None:
+                    block.cache_name = f"{stage.stage}/{name}"
+                    self._masked_blocks.append((block, level))
 
     # ------------------------------------------------------------- mask cache
     def cache_masks(
@@ -188,9 +214,17 @@ class _MaskedModel(nn.Module):
 
         The cache serves only forward passes without gradient (``torch.no_grad`` or
         ``torch.inference_mode``); with gradients enabled masks are always recomputed.
-        Entries are dropped when the MLP weights change (in-place updates, loading,
-        dtype or device moves) and the least recently used ones once ``max_bytes`` is
-        exceeded. Leaving the ``with`` block restores the previous cache.
+        It holds one entry per CoDe block (and sub-view size and dtype): the block's
+        folded masks (:meth:`~.blocks.CoDeBlock.folded_masks`) over the whole padded
+        sub-view grid of its U-Net level, channels-last, in the compute dtype
+        (autocast's, else the parameters'). At level ``k`` a tile whose origin is a
+        multiple of ``2**k`` crops its masks from it (every tile at level 0, and every
+        tile of a grid whose origins are multiples of the model stride); other tiles get
+        theirs computed. A whole sub-view needs :meth:`mask_field_bytes`; with less,
+        the masks that fit stay cached and the others are computed per call (see
+        :class:`~.coordgate.MaskCache`). Entries are dropped when the weights they
+        depend on change (in-place updates, loading, dtype or device moves). Leaving
+        the ``with`` block restores the previous cache.
 
         Examples
         --------
@@ -209,12 +243,26 @@ class _MaskedModel(nn.Module):
                     "hits": 0, "misses": 0}
         return {"enabled": True, **self._mask_cache.info()}
 
-    def _weights_key(self) -> Hashable:
-        return tuple(
-            (p.data_ptr(), p._version, p.dtype, str(p.device))
-            for _, gate in self._gates.values()
-            for p in gate.mlp.parameters()
+    def mask_field_bytes(self, sub_view_size: int, dtype: torch.dtype = torch.float32) -> int:
+        """Bytes the mask cache needs to hold every mask for a whole ``S × S`` sub-view.
+
+        That is the ``max_bytes`` for which tiled inference of a stack never recomputes
+        a mask (with tile origins on multiples of the model stride); ``dtype`` is the
+        compute dtype (the autocast dtype under autocast).
+        """
+        cells = _field_cells(sub_view_size, self._levels())
+        return dtype.itemsize * sum(
+            6 * block.beta.shape[1] * block.conv1.mlp.lenses * (cells // 2**level) ** 2
+            for block, level in self._masked_blocks
         )
+
+    def _levels(self) -> int:
+        return max(stage.levels for stage in self._stages())
+
+    def _weights_key(self) -> Hashable:
+        params = [p for _, gate in self._gates.values() for p in gate.mlp.parameters()]
+        params += [p for block, _ in self._masked_blocks for p in (block.beta, block.gamma)]
+        return tuple((p.data_ptr(), p._version, p.dtype, str(p.device)) for p in params)
 
     # ------------------------------------------------------------ coordinates
     def _grids(
@@ -223,24 +271,52 @@ class _MaskedModel(nn.Module):
         if not self._gates:
             return [None] * (levels + 1)
         cache = self._mask_cache
+        fields: list[MaskField | None] = [None] * (levels + 1)
         if cache is not None:
             cache.check_weights(self._weights_key())
-        config = self.model_config
-        dtype = next(self.parameters()).dtype
+            cache.new_call()
+            fields = self._fields(origins, sub_view_size, shape, levels)
+        tiles = None
+        if cache is None or torch.is_grad_enabled():
+            distinct, tiles = torch.unique(origins, dim=0, return_inverse=True)
+            if len(distinct) == len(origins):
+                tiles = None
+            else:  # tiles at one origin share their masks
+                origins, tiles = distinct, tiles.to(next(self.parameters()).device)
         rows = level_coordinates(origins[:, 0], shape[0], sub_view_size, levels)
         cols = level_coordinates(origins[:, 1], shape[1], sub_view_size, levels)
-        keys = tuple((r, c, *shape, sub_view_size) for r, c in origins.tolist())
         return [
-            CoordGrid(
-                positional_encoding(r, config.pe_bands, config.pe_scheme,
-                                    config.positional_encoding, dtype),
-                positional_encoding(c, config.pe_bands, config.pe_scheme,
-                                    config.positional_encoding, dtype),
-                keys,
-                cache,
-            )
-            for r, c in zip(rows, cols, strict=True)
+            CoordGrid(self._encode(r), self._encode(c), cache, field, tiles)
+            for r, c, field in zip(rows, cols, fields, strict=True)
         ]
+
+    def _encode(self, coords: torch.Tensor) -> torch.Tensor:
+        config, param = self.model_config, next(self.parameters())
+        return positional_encoding(coords, config.pe_bands, config.pe_scheme,
+                                   config.positional_encoding, param.dtype).to(param.device)
+
+    def _fields(
+        self, origins: torch.Tensor, sub_view_size: int, shape: tuple[int, int], levels: int
+    ) -> list[MaskField]:
+        """The whole-field grid of every level and the tiles' offsets in it.
+
+        See :func:`_field_cells` for its extent.
+        """
+        axis = level_coordinates(torch.zeros(1, dtype=torch.long),
+                                 _field_cells(sub_view_size, levels), sub_view_size, levels)
+        out = []
+        for level, coords in enumerate(axis):
+            step, cells = 2**level, coords.shape[1]
+            offsets = tuple(
+                (r // step, c // step)
+                if min(r, c) >= 0 and r % step == 0 and c % step == 0
+                and r + shape[0] <= cells * step and c + shape[1] <= cells * step
+                else None
+                for r, c in origins.tolist()
+            )
+            enc = self._encode(coords)
+            out.append(MaskField((sub_view_size, level, cells), enc, enc, offsets))
+        return out
 
     def _prepare(
         self, views: torch.Tensor, origins: torch.Tensor | Sequence, sub_view_size: int, levels: int
@@ -411,7 +487,7 @@ class SVCoDe(_MaskedModel):
         self, views: torch.Tensor, origins: torch.Tensor | Sequence, sub_view_size: int
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """``(demixed (B, 9, H, W), reconstruction (B, 1, H, W))``, both in ``(0, 1)``."""
-        levels = max(self.demix.levels, self.recon.levels)
+        levels = self._levels()
         padded, grids = self._prepare(views, origins, sub_view_size, levels)
         demixed = self.demix.run(padded, grids)
         recon = self.recon.run(demixed, grids)
