@@ -1,0 +1,425 @@
+"""``svcode bench``: work–precision benchmark of every reconstruction method and speed knob.
+
+Fixed simulated test scenes (cells, vessels, sparse and dense beads, neurons; fixed object
+and noise seeds) are imaged through the system's default forward model (:class:`Simulator`,
+low-rank order chosen by ``rank_tolerance``) with its sensor noise. Every method and knob
+reconstructs every scene; each row of the result reports the scene-mean PSNR, SSIM,
+centre and outer-ring PSNR (:mod:`svcode_core.metrics`, ``data_range = 1``), seconds per
+frame and peak memory.
+
+Rows
+    * **LSV-ADMM**, ``K`` = 3: one run of 500 iterations per scene, read out at 10, 20, 30,
+      50, 100, 200 and 500 iterations (time = solver time up to that iteration);
+    * **LSV-ADMM** at 50 iterations with the operator's low-rank order ``K`` = 1, 6 and the
+      simulator's own ``K`` (an inverse crime: the exact model of the data);
+    * **Wiener** per view with balance 1e-3, 1e-2, 1e-1; **Richardson–Lucy** per view with
+      10, 30 and 100 iterations;
+    * **SV-CoDe** (only with ``--weights`` or a bundled model): tile stride ``P/2`` and
+      ``P/4``, mask cache on/off, fp32/bf16, empty-tile skipping on/off.
+
+Timing and memory
+    Seconds per frame are wall-clock time of the reconstruction call on one CPU thread
+    (``torch.set_num_threads``), excluding one-off set-up (building the operator and
+    estimating its norm, loading the model), which is reported separately. Peak memory is
+    the rise of the process's peak resident set size (``VmHWM`` in ``/proc/self/status``,
+    reset before each row through ``/proc/self/clear_refs``) above the resident size before
+    the row; it includes torch's allocations, which ``tracemalloc`` would not see, but not
+    memory the allocator reuses from earlier rows (small rows after large ones
+    under-report). Where the peak cannot be reset (not Linux) the column is empty.
+
+``--quick`` runs two scenes, ADMM (``K`` = 3) to 50 iterations, one Wiener and one RL
+setting: under two minutes on one core.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..baselines import LsvAdmm, ShiftInvariantDeconvolution
+from ..baselines.admm import settings_for
+from ..cm2 import CM2Operator
+from ..config import SystemConfig, load_system
+from ..geometry import pad_sensor_frame
+from ..metrics import CENTRE_RADIUS, RING_RADIUS, image_quality
+from ..optics import system_psfs
+from ..phantoms import make_object
+from ..pretrained import bundled_weights
+from ..simulate import Simulator
+
+SCENES = (
+    ("cells", "cells", {}),
+    ("vessels", "vessels", {}),
+    ("beads-sparse", "beads", {"density": 1.0}),
+    ("beads-dense", "beads", {"density": 40.0}),
+    ("neurons", "neurons", {}),
+)
+ADMM_CHECKPOINTS = (10, 20, 30, 50, 100, 200, 500)
+ADMM_RANK = 3
+RANK_SWEEP = (1, 6, None)
+RANK_SWEEP_ITERATIONS = 50
+WIENER_BALANCES = (1e-3, 1e-2, 1e-1)
+RL_ITERATIONS = (10, 30, 100)
+METRICS = ("psnr", "ssim", "psnr_centre", "psnr_ring")
+
+
+@dataclass
+class Scene:
+    """One test scene: name, ground truth and its raw frame."""
+
+    name: str
+    truth: np.ndarray
+    raw: np.ndarray
+
+
+@dataclass
+class Row:
+    """One method/knob: per-scene metrics and times, and the peak memory of the row."""
+
+    method: str
+    knob: str
+    settings: dict[str, Any]
+    per_scene: dict[str, dict[str, float]] = field(default_factory=dict)
+    setup_seconds: float = 0.0
+    peak_memory_mib: float | None = None
+
+    def summary(self) -> dict[str, Any]:
+        """Scene means of every metric and of the seconds per frame."""
+        values = list(self.per_scene.values())
+        mean = {key: float(np.mean([v[key] for v in values])) for key in (*METRICS, "seconds")}
+        return {
+            "method": self.method,
+            "knob": self.knob,
+            "settings": self.settings,
+            **mean,
+            "setup_seconds": self.setup_seconds,
+            "peak_memory_mib": self.peak_memory_mib,
+            "per_scene": self.per_scene,
+        }
+
+
+# ------------------------------------------------------------------ memory
+class PeakMemory:
+    """Rise of the peak resident set size over a block (Linux; ``None`` elsewhere)."""
+
+    def __enter__(self) -> PeakMemory:
+        self.mib: float | None = None
+        self._start = _status_kib("VmRSS")
+        try:
+            Path("/proc/self/clear_refs").write_text("5")
+        except OSError:
+            self._start = None
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._start is not None:
+            self.mib = max(_status_kib("VmHWM") - self._start, 0) / 1024
+
+
+def _status_kib(field_name: str) -> int | None:
+    try:
+        lines = Path("/proc/self/status").read_text().splitlines()
+    except OSError:
+        return None
+    for line in lines:
+        if line.startswith(field_name + ":"):
+            return int(line.split()[1])
+    return None
+
+
+# ------------------------------------------------------------------ scenes
+def make_scenes(system: SystemConfig, names: tuple[str, ...], simulator: Simulator) -> list[Scene]:
+    """The fixed test scenes (object seed = index in :data:`SCENES`, noise seed 100 + index)."""
+    scenes = []
+    for index, (name, kind, params) in enumerate(SCENES):
+        if name not in names:
+            continue
+        truth = make_object(kind, system.sub_view_size, index, **params)
+        raw = simulator.simulate(truth, seed=100 + index).measurement
+        scenes.append(Scene(name, truth, raw))
+    return scenes
+
+
+def _padded(scene: Scene, operator: CM2Operator) -> torch.Tensor:
+    raw = torch.as_tensor(scene.raw, dtype=operator.lenses.dtype)
+    return pad_sensor_frame(raw, operator.system)
+
+
+def _score(row: Row, scene: Scene, estimate: np.ndarray, seconds: float) -> None:
+    quality = image_quality(scene.truth, np.asarray(estimate, dtype=np.float64), data_range=1.0)
+    row.per_scene[scene.name] = {**quality, "seconds": seconds}
+
+
+# ------------------------------------------------------------------ methods
+class CheckpointRecorder:
+    """ADMM callback keeping the estimate and the solver time at chosen iterations.
+
+    The time spent copying snapshots is excluded from the reported times.
+    """
+
+    def __init__(self, wanted: set[int]) -> None:
+        self.wanted = wanted
+        self.snapshots: dict[int, tuple[float, np.ndarray]] = {}
+        self.start = time.perf_counter()
+        self.paused = 0.0
+
+    def __call__(self, iteration: int, x: torch.Tensor) -> None:
+        if iteration in self.wanted:
+            now = time.perf_counter()
+            self.snapshots[iteration] = (now - self.start - self.paused, x.cpu().numpy().copy())
+            self.paused += time.perf_counter() - now
+
+
+def admm_rows(
+    operator: CM2Operator,
+    scenes: list[Scene],
+    checkpoints: tuple[int, ...],
+    label: str,
+    setup_seconds: float,
+) -> list[Row]:
+    """LSV-ADMM rows: one run per scene, read out at every checkpoint."""
+    settings = settings_for(operator.system)
+    start = time.perf_counter()
+    solver = LsvAdmm(
+        operator, settings.tv_weight, settings.rho, settings.cg_iterations, settings.adaptive_rho
+    )
+    setup_seconds += time.perf_counter() - start
+    rows = {
+        n: Row(
+            "LSV-ADMM",
+            f"{label}, {n} it",
+            {"rank": operator.rank, "iterations": n, "tv_weight": settings.tv_weight},
+            setup_seconds=setup_seconds,
+        )
+        for n in checkpoints
+    }
+    with PeakMemory() as memory:
+        for scene in scenes:
+            frame = _padded(scene, operator)
+            record = CheckpointRecorder(set(rows))
+            solver.solve(frame, iterations=max(checkpoints), tolerance=0.0, callback=record)
+            for n, (seconds, estimate) in record.snapshots.items():
+                _score(rows[n], scene, estimate, seconds)
+    for row in rows.values():
+        row.peak_memory_mib = memory.mib
+    return list(rows.values())
+
+
+def deconvolution_rows(operator: CM2Operator, scenes: list[Scene], quick: bool) -> list[Row]:
+    """Wiener and Richardson–Lucy rows."""
+    rows = []
+    knobs = [("wiener", "balance", b) for b in (WIENER_BALANCES[1:2] if quick else WIENER_BALANCES)]
+    knobs += [("rl", "iterations", n) for n in (RL_ITERATIONS[1:2] if quick else RL_ITERATIONS)]
+    for method, name, value in knobs:
+        start = time.perf_counter()
+        deconv = ShiftInvariantDeconvolution(operator, method, **{name: value})
+        setup = time.perf_counter() - start
+        label = "Wiener" if method == "wiener" else "Richardson-Lucy"
+        row = Row(label, f"{name} {value:g}", {name: value}, setup_seconds=setup)
+        with PeakMemory() as memory:
+            for scene in scenes:
+                frame = _padded(scene, operator)
+                start = time.perf_counter()
+                estimate = deconv(frame).numpy()
+                _score(row, scene, estimate, time.perf_counter() - start)
+        row.peak_memory_mib = memory.mib
+        rows.append(row)
+    return rows
+
+
+def svcode_rows(weights: Path, system: SystemConfig, scenes: list[Scene]) -> list[Row]:
+    """SV-CoDe rows over stride, mask cache, precision and skipping."""
+    from ..reconstruct import Reconstructor
+
+    patch = system.patch_size
+    knobs = [
+        {"stride": patch // 2, "cache": True, "precision": "fp32", "skip": True},
+        {"stride": patch // 4, "cache": True, "precision": "fp32", "skip": True},
+        {"stride": patch // 2, "cache": False, "precision": "fp32", "skip": True},
+        {"stride": patch // 2, "cache": True, "precision": "bf16", "skip": True},
+        {"stride": patch // 2, "cache": True, "precision": "fp32", "skip": False},
+    ]
+    rows = []
+    for knob in knobs:
+        start = time.perf_counter()
+        rec = Reconstructor.from_weights(
+            weights, system, precision=knob["precision"], tile_size=patch,
+            stride=knob["stride"], skip_empty=knob["skip"],
+        )  # fmt: skip
+        rec.model.cache_masks(knob["cache"])
+        rec.reconstruct(scenes[0].raw)  # warm-up: fills the mask cache, as in a recording
+        label = ", ".join(f"{k} {v}" for k, v in knob.items())
+        row = Row("SV-CoDe", label, knob, setup_seconds=time.perf_counter() - start)
+        with PeakMemory() as memory:
+            for scene in scenes:
+                start = time.perf_counter()
+                estimate = rec.reconstruct(scene.raw).reconstruction
+                _score(row, scene, estimate, time.perf_counter() - start)
+        row.peak_memory_mib = memory.mib
+        rows.append(row)
+    return rows
+
+
+# ------------------------------------------------------------------ driver
+def run_benchmark(
+    system: SystemConfig,
+    quick: bool = False,
+    weights: Path | None = None,
+    progress: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """Run every row on the fixed scenes; return the JSON-ready report."""
+    names = ("cells", "beads-sparse") if quick else tuple(s[0] for s in SCENES)
+    start = time.perf_counter()
+    psfs = system_psfs(system)
+    simulator = Simulator(system, CM2Operator.from_psfs(system, psfs))
+    scenes = make_scenes(system, names, simulator)
+    progress(f"{len(scenes)} scenes simulated (K = {simulator.operator.rank}) "
+             f"in {time.perf_counter() - start:.1f} s")  # fmt: skip
+
+    def operator(rank: int | None) -> tuple[CM2Operator, float]:
+        if rank is None:
+            return simulator.operator, 0.0
+        begin = time.perf_counter()
+        op = CM2Operator.from_psfs(system, psfs, rank=rank)
+        return op, time.perf_counter() - begin
+
+    rows: list[Row] = []
+    op, setup = operator(ADMM_RANK)
+    checkpoints = (10, 50) if quick else ADMM_CHECKPOINTS
+    rows += admm_rows(op, scenes, checkpoints, f"K={ADMM_RANK}", setup)
+    progress(f"LSV-ADMM K={ADMM_RANK} done ({time.perf_counter() - start:.0f} s)")
+    rows += deconvolution_rows(op, scenes, quick)
+    progress(f"Wiener / RL done ({time.perf_counter() - start:.0f} s)")
+    if not quick:
+        for rank in RANK_SWEEP:
+            op, setup = operator(rank)
+            label = f"K={op.rank}" + (" (simulator's)" if rank is None else "")
+            rows += admm_rows(op, scenes, (RANK_SWEEP_ITERATIONS,), label, setup)
+            progress(f"LSV-ADMM {label} done ({time.perf_counter() - start:.0f} s)")
+    weights = weights or bundled_weights(system)
+    note = None
+    if weights is None:
+        note = "SV-CoDe rows skipped: no --weights given and no bundled model"
+    else:
+        rows += svcode_rows(weights, system, scenes)
+    return {
+        "system": system.name,
+        "quick": quick,
+        "scenes": [s.name for s in scenes],
+        "simulator_rank": simulator.operator.rank,
+        "zones": {"centre": f"r < {CENTRE_RADIUS}", "ring": f"r > {RING_RADIUS}"},
+        "threads": torch.get_num_threads(),
+        "machine": f"{platform.machine()} {platform.processor() or ''}".strip(),
+        "torch": torch.__version__,
+        "total_seconds": time.perf_counter() - start,
+        "note": note,
+        "rows": [row.summary() for row in rows],
+    }
+
+
+def write_markdown(report: dict[str, Any], path: Path) -> None:
+    """The report as a Markdown table."""
+    lines = [
+        "# Work–precision benchmark",
+        "",
+        f"System {report['system']}; scenes {', '.join(report['scenes'])} (simulated with the "
+        f"system's forward model, K = {report['simulator_rank']}, default sensor noise). "
+        f"Means over scenes; PSNR in dB against the ground truth (data range 1); centre "
+        f"{report['zones']['centre']}, ring {report['zones']['ring']} (normalised field "
+        f"radius). CPU, {report['threads']} thread(s), on a 2-core machine shared with other "
+        "jobs: times are indicative to about ±30%. Set-up (operator build, norm estimate) "
+        "is excluded from s/frame. Peak MiB is the rise of the peak resident memory above "
+        "the resident memory before the row: memory the allocator already holds from earlier "
+        "rows is reused without being counted, so small rows after large ones under-report "
+        f"(down to 0). Total run {report['total_seconds'] / 60:.1f} min.",
+        "",
+        "| method | knob | PSNR | SSIM | PSNR centre | PSNR ring | s / frame | set-up s "
+        "| peak MiB |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for row in report["rows"]:
+        memory = "" if row["peak_memory_mib"] is None else f"{row['peak_memory_mib']:.0f}"
+        lines.append(
+            f"| {row['method']} | {row['knob']} | {row['psnr']:.2f} | {row['ssim']:.3f} | "
+            f"{row['psnr_centre']:.2f} | {row['psnr_ring']:.2f} | {row['seconds']:.3g} | "
+            f"{row['setup_seconds']:.2f} | {memory} |"
+        )
+    if report["note"]:
+        lines += ["", report["note"] + "."]
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+
+
+def plot_pareto(report: dict[str, Any], path: Path) -> None:
+    """Seconds per frame (log) against PSNR, one series per method, Pareto front marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    methods = dict.fromkeys(row["method"] for row in report["rows"])
+    for method in methods:
+        rows = [r for r in report["rows"] if r["method"] == method]
+        ax.scatter([r["seconds"] for r in rows], [r["psnr"] for r in rows], label=method)
+        for r in rows:
+            ax.annotate(r["knob"], (r["seconds"], r["psnr"]), fontsize=6,
+                        xytext=(3, 3), textcoords="offset points")  # fmt: skip
+    front = pareto_front([(r["seconds"], r["psnr"]) for r in report["rows"]])
+    ax.plot(*zip(*front, strict=True), "k--", lw=0.8, label="Pareto front")
+    ax.set_xscale("log")
+    ax.set_xlabel("seconds per frame (CPU, log scale)")
+    ax.set_ylabel("PSNR (dB), mean over scenes")
+    ax.set_title(f"Work–precision, {report['system']}")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=150)
+    plt.close(fig)
+
+
+def pareto_front(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """Points not beaten in both time (lower) and PSNR (higher), sorted by time."""
+    front, best = [], -np.inf
+    for seconds, quality in sorted(points, key=lambda p: (p[0], -p[1])):
+        if quality > best:
+            front.append((seconds, quality))
+            best = quality
+    return front
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    """Register ``svcode bench``."""
+    parser = subparsers.add_parser(
+        "bench",
+        help="work–precision benchmark of every method and knob",
+        description=__doc__.split("\n\n")[0],
+    )
+    parser.add_argument("--quick", action="store_true", help="small version (< 2 min)")
+    parser.add_argument("--out", type=Path, default=Path("bench/results"), help="output folder")
+    parser.add_argument("--system", default="cm2-mini", help="preset or system JSON")
+    parser.add_argument("--weights", type=Path, help="trained SV-CoDe model for its rows")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the benchmark and write ``work_precision.{json,md,png}`` to ``args.out``."""
+    if args.weights is not None and not args.weights.is_file():
+        raise FileNotFoundError(f"weights not found: {args.weights}")
+    torch.set_num_threads(args.threads)
+    report = run_benchmark(load_system(args.system), args.quick, args.weights)
+    args.out.mkdir(parents=True, exist_ok=True)
+    stem = args.out / "work_precision"
+    Path(f"{stem}.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    write_markdown(report, Path(f"{stem}.md"))
+    plot_pareto(report, Path(f"{stem}.png"))
+    print(f"wrote {stem}.json, .md and .png ({report['total_seconds'] / 60:.1f} min)")
+    return 0

@@ -1,0 +1,358 @@
+import argparse
+import pickle
+
+import numpy as np
+import pytest
+import scipy.optimize
+import torch
+from skimage.restoration import richardson_lucy, wiener
+from test_cm2 import gaussian_psfs
+
+from svcode_core.baselines import (
+    BaselineReconstructor,
+    BaselineSpec,
+    add_method_arguments,
+    baseline_options,
+    reconstruct_with_baseline,
+)
+from svcode_core.baselines.admm import (
+    LsvAdmm,
+    _soft_threshold,
+    gradient,
+    gradient_adjoint,
+    operator_norm,
+    total_variation,
+)
+from svcode_core.baselines.deconv import (
+    ShiftInvariantDeconvolution,
+    centre_psfs,
+    fuse_views,
+    lens_transmission,
+    richardson_lucy_deconvolve,
+    wiener_deconvolve,
+)
+from svcode_core.cm2 import CM2Operator
+from svcode_core.config import OpticsConfig, _system_from_scale
+from svcode_core.geometry import extract_sub_views, pad_sensor_frame
+from svcode_core.metrics import psnr
+
+
+def gaussian_kernel(size=9, sigma=1.3):
+    axis = np.arange(size) - size // 2
+    kernel = np.exp(-0.5 * (axis[:, None] ** 2 + axis[None, :] ** 2) / sigma**2)
+    return kernel / kernel.sum()
+
+
+@pytest.fixture
+def micro_system():
+    """16-pixel object, 5-pixel kernels: small enough for dense reference solvers."""
+    optics = OpticsConfig(psf_grid=3, kernel_size=5, airy_radius=1.0, pupil_samples=16)
+    return _system_from_scale("micro", (20, 28), 16, 6, 8, optics, 1e-2).validate()
+
+
+@pytest.fixture
+def micro_op(micro_system):
+    return CM2Operator.from_psfs(micro_system, gaussian_psfs(micro_system), dtype=torch.float64)
+
+
+@pytest.fixture
+def tiny_op(tiny_system):
+    return CM2Operator.from_psfs(tiny_system, gaussian_psfs(tiny_system), rank=3)
+
+
+def disc_object(size, dtype=torch.float32):
+    axis = torch.arange(size, dtype=dtype) - size / 2
+    r = torch.sqrt(axis[:, None] ** 2 + axis[None, :] ** 2)
+    obj = (r < size / 4).to(dtype) * 0.6
+    obj[size // 3, size // 3] = 1.0
+    return obj
+
+
+# ------------------------------------------------------------------ pieces
+def test_gradient_adjoint_dot_product():
+    gen = torch.Generator().manual_seed(0)
+    x = torch.randn(3, 17, 12, generator=gen, dtype=torch.float64)
+    g = torch.randn(3, 2, 17, 12, generator=gen, dtype=torch.float64)
+    lhs = (gradient(x) * g).sum()
+    rhs = (x * gradient_adjoint(g)).sum()
+    assert abs(lhs - rhs) <= 1e-12 * abs(lhs)
+    # ‖∇‖² ≤ 8, the bound the ADMM weights rely on
+    assert float(gradient(x).norm() ** 2) <= 8 * float(x.norm() ** 2)
+
+
+def test_soft_threshold_is_the_prox_of_the_group_norm():
+    gen = torch.Generator().manual_seed(1)
+    v = torch.randn(2, 6, 6, generator=gen, dtype=torch.float64)
+    t = 0.7
+    z = _soft_threshold(v, t)
+    # optimality of argmin_z t·Σ|z| + ½‖z − v‖²: objective is not improved by perturbations
+    def objective(w):
+        group = float(torch.sqrt(w[0] ** 2 + w[1] ** 2).sum())
+        return t * group + 0.5 * float(((w - v) ** 2).sum())
+
+    best = objective(z)
+    for _ in range(20):
+        assert objective(z + 1e-3 * torch.randn(v.shape, generator=gen, dtype=v.dtype)) >= best
+    assert total_variation(torch.zeros(4, 4)) == 0
+
+
+def test_operator_norm_matches_dense_svd(micro_system, micro_op):
+    size = micro_system.sub_view_size
+    basis = torch.eye(size * size, dtype=torch.float64).reshape(-1, size, size)
+    dense = micro_op.forward(basis).reshape(size * size, -1).T.numpy()
+    exact = np.linalg.norm(dense, 2)
+    assert operator_norm(micro_op, iterations=30) == pytest.approx(exact, rel=1e-3)
+
+
+# ------------------------------------------------------- shift-invariant filters
+@pytest.mark.parametrize("balance", [1e-3, 0.1])
+def test_wiener_matches_skimage(balance):
+    rng = np.random.default_rng(0)
+    image = rng.random((40, 36))
+    psf = gaussian_kernel()
+    ours = wiener_deconvolve(torch.from_numpy(image), torch.from_numpy(psf), balance).numpy()
+    np.testing.assert_allclose(ours, wiener(image, psf, balance, clip=False), atol=1e-12)
+    # reflect boundary = skimage on the mirrored image, cropped
+    ours = wiener_deconvolve(torch.from_numpy(image), torch.from_numpy(psf), balance, "reflect")
+    mirrored = np.pad(image, 9, mode="reflect")
+    expected = wiener(mirrored, psf, balance, clip=False)[9:-9, 9:-9]
+    np.testing.assert_allclose(ours.numpy(), expected, atol=1e-12)
+
+
+def test_richardson_lucy_matches_skimage():
+    rng = np.random.default_rng(1)
+    image = rng.random((30, 34))
+    psf = gaussian_kernel(7, 1.0)
+    ours = richardson_lucy_deconvolve(torch.from_numpy(image), torch.from_numpy(psf), 15)
+    expected = richardson_lucy(image, psf, num_iter=15, clip=False)
+    np.testing.assert_allclose(ours.numpy(), expected, rtol=1e-9, atol=1e-12)
+
+
+def shift_invariant_operator(system):
+    """Only the central lens transmits, with one Gaussian PSF over the whole field."""
+    k = system.optics.kernel_size
+    psfs = np.zeros((9, system.optics.psf_grid**2, k, k))
+    psfs[4] = gaussian_kernel(k, 1.2)
+    return CM2Operator.from_psfs(system, psfs, dtype=torch.float64)
+
+
+@pytest.mark.parametrize("method", ["wiener", "rl"])
+def test_pipeline_agrees_with_skimage_on_a_shift_invariant_system(tiny_system, method):
+    op = shift_invariant_operator(tiny_system)
+    x = disc_object(tiny_system.sub_view_size, torch.float64)
+    frame = op.forward(x) + 0.01  # an offset, so RL sees positive data everywhere
+    frame = pad_sensor_frame(frame[tiny_system.sensor_window], tiny_system)
+    view = extract_sub_views(frame, tiny_system)[4].numpy()
+    psf = gaussian_kernel(tiny_system.optics.kernel_size, 1.2)
+    if method == "wiener":
+        deconv = ShiftInvariantDeconvolution(op, "wiener", balance=0.02, boundary="periodic")
+        expected = wiener(view, psf, 0.02, clip=False)
+    else:
+        deconv = ShiftInvariantDeconvolution(op, "rl", iterations=20)
+        expected = richardson_lucy(view, psf, num_iter=20, clip=False)
+    np.testing.assert_allclose(deconv(frame).numpy(), expected, rtol=1e-6, atol=1e-9)
+
+
+def test_centre_psfs_and_transmission(tiny_system):
+    psfs = gaussian_psfs(tiny_system)
+    op = CM2Operator.from_psfs(tiny_system, psfs, rank=9, dtype=torch.float64)
+    centre = centre_psfs(op).numpy()
+    # grid node 4 is the object centre; pixel S//2 sits 1/(S-1) from it: close, not equal
+    np.testing.assert_allclose(centre, psfs[:, 4], atol=0.02 * psfs.max())
+    # gaussian_psfs' total energy is 1 − 0.15 (v² + u²), a quadratic the spline reproduces
+    size = tiny_system.sub_view_size
+    t = np.linspace(-1, 1, size)
+    expected = 1 - 0.15 * (t[:, None] ** 2 + t[None, :] ** 2)
+    transmission = lens_transmission(op).numpy()
+    np.testing.assert_allclose(transmission, np.broadcast_to(expected, (9, size, size)), atol=1e-9)
+
+
+def test_fusion_inverts_transmission_and_drops_unseen_pixels():
+    gen = torch.Generator().manual_seed(2)
+    x = torch.rand(6, 6, generator=gen, dtype=torch.float64)
+    transmission = 0.2 + torch.rand(9, 6, 6, generator=gen, dtype=torch.float64)
+    coverage = torch.ones(9, 6, 6, dtype=torch.float64)
+    coverage[:, 0, 0] = 0  # no lens sees this pixel
+    coverage[:5, 1, 1] = 0  # only some lenses see this one
+    fused = fuse_views(transmission * x, transmission, coverage)
+    expected = x.clone()
+    expected[0, 0] = 0
+    torch.testing.assert_close(fused, expected)
+
+
+# ------------------------------------------------------------------ LSV-ADMM
+def dense_operator(op):
+    size = op.system.sub_view_size
+    basis = torch.eye(size * size, dtype=torch.float64).reshape(-1, size, size)
+    return op.forward(basis).reshape(size * size, -1).T.numpy()
+
+
+def micro_frame(op, seed=0):
+    x = disc_object(op.system.sub_view_size, torch.float64)
+    gen = torch.Generator().manual_seed(seed)
+    frame = op.forward(x)
+    return frame + 0.01 * torch.randn(frame.shape, generator=gen, dtype=frame.dtype) * (frame > 0)
+
+
+def test_admm_without_tv_solves_nonnegative_least_squares(micro_op):
+    frame = micro_frame(micro_op)
+    dense = dense_operator(micro_op)
+    reference = scipy.optimize.lsq_linear(dense, frame.numpy().ravel(), bounds=(0, np.inf),
+                                          tol=1e-12, max_iter=5000)
+    solver = LsvAdmm(micro_op, tv_weight=0.0, rho=0.1, cg_iterations=3)
+    result = solver.solve(frame, iterations=1000, tolerance=1e-9)
+    # lsq_linear's cost is ½‖Ax − y‖², the same objective
+    assert abs(solver.objective(result.x, frame) - reference.cost) <= 1e-3 * reference.cost
+    assert float(result.x.min()) >= 0
+
+
+def smoothed_tv_reference(op, frame, tv_weight, epsilon=1e-5):
+    """Independent solver: L-BFGS-B with bounds on a Huber-smoothed isotropic TV."""
+    dense = dense_operator(op)
+    y = frame.numpy().ravel()
+    size = op.system.sub_view_size
+
+    def fun(flat):
+        x = torch.tensor(flat.reshape(size, size), requires_grad=True)
+        g = gradient(x)
+        tv = torch.sqrt(g[0] ** 2 + g[1] ** 2 + epsilon**2).sum()
+        residual = torch.from_numpy(dense) @ x.reshape(-1) - torch.from_numpy(y)
+        value = 0.5 * (residual**2).sum() + tv_weight * tv
+        value.backward()
+        return float(value.detach()), x.grad.numpy().ravel().copy()
+
+    best = scipy.optimize.minimize(fun, np.zeros(size * size), jac=True, method="L-BFGS-B",
+                                   bounds=[(0, None)] * size * size,
+                                   options={"maxiter": 20000, "ftol": 1e-15, "gtol": 1e-12})
+    return best.x.reshape(size, size)
+
+
+def test_admm_with_tv_matches_an_independent_solver(micro_op):
+    frame = micro_frame(micro_op)
+    tv_weight = 3e-3
+    reference = torch.from_numpy(smoothed_tv_reference(micro_op, frame, tv_weight))
+    solver = LsvAdmm(micro_op, tv_weight=tv_weight, rho=0.1)
+    result = solver.solve(frame, iterations=1500, tolerance=1e-8)
+    ours, theirs = solver.objective(result.x, frame), solver.objective(reference, frame)
+    assert ours <= theirs * (1 + 1e-3)
+    assert float((result.x - reference).norm() / reference.norm()) < 2e-2
+
+
+def test_admm_warm_start_continues_the_descent(tiny_op, tiny_system):
+    frame = tiny_op.forward(disc_object(tiny_system.sub_view_size))
+    solver = LsvAdmm(tiny_op, tv_weight=1e-3, rho=0.1)
+    first = solver.solve(frame, iterations=30, tolerance=0)
+    warm = solver.solve(frame, x0=first.x, iterations=30, tolerance=0)
+    cold = solver.solve(frame, iterations=60, tolerance=0)
+    assert solver.objective(warm.x, frame) < solver.objective(first.x, frame)
+    assert solver.objective(warm.x, frame) <= 1.05 * solver.objective(cold.x, frame)
+    assert len(cold.objective) == 60 and len(cold.primal_residual) == 6 == len(cold.rho)
+    assert cold.objective[-1] < cold.objective[0]
+
+
+def test_admm_stops_at_tolerance_and_reports_every_iteration(tiny_op, tiny_system):
+    frame = tiny_op.forward(disc_object(tiny_system.sub_view_size))
+    seen = []
+    result = LsvAdmm(tiny_op, 1e-3).solve(
+        frame, iterations=500, tolerance=5e-2, callback=lambda i, x: seen.append(i)
+    )
+    assert result.converged and result.iterations < 500
+    assert seen == list(range(1, result.iterations + 1))
+    assert result.primal_residual[-1] <= 5e-2 and result.dual_residual[-1] <= 5e-2
+
+
+def test_admm_rejects_bad_input(tiny_op, tiny_system):
+    solver = LsvAdmm(tiny_op, 1e-3)
+    frame = torch.zeros(tiny_system.padded_shape)
+    frame[30, 30] = float("nan")
+    with pytest.raises(ValueError, match="NaN"):
+        solver.solve(frame)
+    with pytest.raises(ValueError, match="padded sensor frame"):
+        solver.solve(torch.zeros(tiny_system.sensor_shape))
+    with pytest.raises(ValueError, match="tv_weight"):
+        LsvAdmm(tiny_op, -1.0)
+    with pytest.raises(ValueError, match="rho"):
+        LsvAdmm(tiny_op, 1e-3, rho=0.0)
+    zero = CM2Operator.from_psfs(tiny_system, 0 * gaussian_psfs(tiny_system), rank=1)
+    with pytest.raises(ValueError, match="zero"):
+        LsvAdmm(zero, 1e-3)
+
+
+# -------------------------------------------------------- reconstruction API
+@pytest.mark.parametrize(
+    "method, options, gain",
+    [
+        ("admm", {"iterations": 60}, 15.0),
+        # the shift-invariant methods leave the crosstalk of the neighbouring lenses in
+        ("wiener", {"balance": 1e-2}, 3.0),
+        ("rl", {"iterations": 20}, 3.0),
+    ],
+)
+def test_reconstruct_with_baseline(tiny_system, tiny_op, method, options, gain):
+    x = disc_object(tiny_system.sub_view_size)
+    raw = tiny_op.measure(x).numpy()
+    recon = reconstruct_with_baseline(method, raw, tiny_system, operator=tiny_op, **options)
+    assert recon.shape == x.shape and recon.dtype == np.float32
+    assert np.isfinite(recon).all()
+    # much better than the zero image, in the centre where all lenses see the object
+    zone = slice(12, 36)
+    assert psnr(x.numpy()[zone, zone], recon[zone, zone], 1.0) > psnr(
+        x.numpy()[zone, zone], 0 * recon[zone, zone], 1.0
+    ) + gain
+
+
+def test_stack_views_and_spec(tiny_system, tiny_op):
+    x = disc_object(tiny_system.sub_view_size)
+    raw = tiny_op.measure(x).numpy()
+    rec = BaselineReconstructor("admm", tiny_system, operator=tiny_op, iterations=20)
+    result = rec.reconstruct(np.stack([raw, raw]), return_views=True)
+    assert result.reconstruction.shape == (2, 48, 48)
+    assert result.views.shape == (2, 9, 48, 48)
+    spec = BaselineSpec("rl", tiny_system, {"iterations": 5})
+    assert pickle.loads(pickle.dumps(spec)).describe() == {"method": "rl", "iterations": 5}
+    with pytest.raises(ValueError, match="unknown option"):
+        BaselineReconstructor("wiener", tiny_system, operator=tiny_op, iterations=5)
+    with pytest.raises(ValueError, match="method"):
+        BaselineReconstructor("svcode", tiny_system, operator=tiny_op)
+
+
+def test_command_line_options():
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--method")
+    add_method_arguments(parser)
+    args = parser.parse_args(["--method", "admm", "--iterations", "50", "--tv-weight", "1e-3"])
+    assert baseline_options(args) == {"iterations": 50, "tv_weight": 1e-3}
+    args = parser.parse_args(["--method", "wiener", "--wiener-balance", "0.1", "--rank", "2"])
+    assert baseline_options(args) == {"balance": 0.1, "rank": 2}
+    args = parser.parse_args(["--method", "wiener", "--rho", "1"])
+    with pytest.raises(ValueError, match="--rho does not apply"):
+        baseline_options(args)
+
+
+# ------------------------------------------------------------------ benchmark
+def test_benchmark_rows_and_outputs(tiny_system, tiny_op, tmp_path):
+    from svcode_core.cli.bench import (
+        Scene,
+        admm_rows,
+        deconvolution_rows,
+        pareto_front,
+        plot_pareto,
+        write_markdown,
+    )
+
+    truth = disc_object(tiny_system.sub_view_size).numpy()
+    scenes = [Scene("disc", truth, tiny_op.measure(torch.from_numpy(truth)).numpy())]
+    rows = admm_rows(tiny_op, scenes, (2, 10), "K=3", 0.0)
+    rows += deconvolution_rows(tiny_op, scenes, quick=True)
+    summaries = [row.summary() for row in rows]
+    assert [s["method"] for s in summaries] == ["LSV-ADMM", "LSV-ADMM", "Wiener", "Richardson-Lucy"]
+    assert summaries[0]["seconds"] < summaries[1]["seconds"]  # time grows with iterations
+    assert summaries[0]["psnr"] < summaries[1]["psnr"]  # and so does the precision
+    report = {"system": "tiny", "scenes": ["disc"], "simulator_rank": 3, "threads": 1,
+              "zones": {"centre": "r < 0.5", "ring": "r > 0.8"}, "total_seconds": 1.0,
+              "note": "no model", "rows": summaries}
+    write_markdown(report, tmp_path / "wp.md")
+    plot_pareto(report, tmp_path / "wp.png")
+    assert (tmp_path / "wp.md").read_text().count("| LSV-ADMM |") == 2
+    assert (tmp_path / "wp.png").stat().st_size > 0
+    assert pareto_front([(1, 10), (2, 5), (3, 20), (0.5, 1)]) == [(0.5, 1), (1, 10), (3, 20)]
