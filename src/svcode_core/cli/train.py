@@ -1,0 +1,117 @@
+"""``svcode train``: train SV-CoDe on a simulated dataset (also under ``torchrun``)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import torch
+
+from ..config import available_presets, load_system
+from ..network import ModelConfig
+from ..training import TrainConfig, Trainer, TrainingData, init_distributed, shutdown_distributed
+
+ABLATIONS = {
+    "none": {},
+    "no-coordgate": {"coord_gate": False},
+    "no-pe": {"positional_encoding": False},
+}
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    """Register ``svcode train``."""
+    defaults = TrainConfig()
+    parser = subparsers.add_parser(
+        "train",
+        help="train SV-CoDe on a simulated dataset",
+        description=(
+            "Train the two-stage SV-CoDe network on the patches of a dataset written by "
+            "`svcode dataset`, with fresh sensor noise on every use. Writes checkpoints "
+            "every epoch, best.safetensors (best validation PSNR), log.csv, log.json and "
+            "loss.png to OUT. For several GPUs run it under `torchrun --nproc-per-node N "
+            "-m svcode_core.cli train ...`."
+        ),
+    )
+    source = parser.add_mutually_exclusive_group()
+    source.add_argument("--preset", choices=available_presets(),
+                        help="system preset; must match the dataset's (default: the dataset's)")
+    source.add_argument("--system", type=Path, help="system JSON file instead of a preset")
+    parser.add_argument("--data", type=Path, required=True, help="dataset folder")
+    parser.add_argument("--out", type=Path, required=True, help="run folder")
+    parser.add_argument("--model-config", default="mini", metavar="{mini,reference,FILE}",
+                        help="network sizes: a preset name or a ModelConfig JSON file "
+                        "(default: mini)")
+    parser.add_argument("--ablation", default="none", choices=sorted(ABLATIONS),
+                        help="switch off the coordinate gate or the positional encoding")
+    parser.add_argument("--epochs", type=int, default=defaults.epochs)
+    parser.add_argument("--batch-size", type=int, default=defaults.batch_size,
+                        help="patches per step and process")
+    parser.add_argument("--lr", type=float, default=defaults.lr, help="initial learning rate")
+    parser.add_argument("--min-lr-ratio", type=float, default=defaults.min_lr_ratio,
+                        help="final learning rate of the cosine schedule, relative to --lr")
+    parser.add_argument("--warmup-steps", type=int, default=defaults.warmup_steps,
+                        help="steps of linear learning-rate warm-up")
+    parser.add_argument("--grad-clip", type=float, default=defaults.grad_clip,
+                        help="maximum gradient norm")
+    parser.add_argument("--patches-per-epoch", type=int,
+                        help="training patches drawn per epoch (default: all)")
+    parser.add_argument("--val-patches", type=int,
+                        help="size of the fixed validation subset (default: all)")
+    parser.add_argument("--same-origin", type=int, default=defaults.same_origin, metavar="N",
+                        help="draw training patches in runs of N sharing their origin, so the "
+                        "coordinate masks are computed once per run (N = batch size: several "
+                        "times faster on a CPU; default: 1, independent draws)")
+    parser.add_argument("--seed", type=int, default=defaults.seed)
+    parser.add_argument("--workers", type=int, default=defaults.workers,
+                        help="data-loading worker processes")
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu",
+                        help="cpu or cuda (under torchrun each process takes cuda:LOCAL_RANK)")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue from the latest checkpoint in OUT")
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    parser.set_defaults(func=run)
+
+
+def model_config_from(spec: str, ablation: str = "none") -> ModelConfig:
+    """A ModelConfig from ``"mini"``, ``"reference"`` or a JSON file, with an ablation."""
+    if spec in ("mini", "reference"):
+        config = getattr(ModelConfig, spec)()
+    else:
+        path = Path(spec)
+        if not path.is_file():
+            raise FileNotFoundError(f"--model-config {spec!r}: neither mini, reference nor "
+                                    "an existing JSON file")
+        config = ModelConfig.from_json(path.read_text(encoding="utf-8"))
+    return config.replace(**ABLATIONS[ablation])
+
+
+def run(args: argparse.Namespace) -> int:
+    """Train (or resume) and print where the results are."""
+    data = TrainingData(args.data)
+    if args.preset or args.system:
+        system = load_system(args.system if args.system else args.preset)
+        if system != data.system:
+            raise ValueError(f"the dataset {args.data} was simulated for system "
+                             f"{data.system.name!r}, which differs from {system.name!r}")
+    config = TrainConfig(
+        epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
+        min_lr_ratio=args.min_lr_ratio, warmup_steps=args.warmup_steps, grad_clip=args.grad_clip,
+        patches_per_epoch=args.patches_per_epoch, val_patches=args.val_patches,
+        seed=args.seed, workers=args.workers, same_origin=args.same_origin,
+    )
+    device = torch.device(args.device)
+    dist = init_distributed(device.type)
+    if device.type == "cuda" and dist.active:
+        device = torch.device("cuda", dist.local_rank)
+    try:
+        trainer = Trainer(data, args.out, model_config_from(args.model_config, args.ablation),
+                          config, device=device, dist=dist, progress=not args.no_progress)
+        trainer.fit(resume=args.resume)
+    finally:
+        shutdown_distributed(dist)
+    if dist.is_main and trainer.best:
+        best = trainer.best
+        print(f"best epoch {best['epoch']}: validation reconstruction PSNR "
+              f"{best['val_recon_psnr']:.2f} dB, SSIM {best['val_recon_ssim']:.3f} -> "
+              f"{args.out / 'best.safetensors'}")
+    return 0

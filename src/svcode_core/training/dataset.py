@@ -1,0 +1,276 @@
+"""Simulated training data: generated once, stored as memory-mapped arrays, resumable.
+
+A dataset folder holds
+
+* ``views.npy``: the nine **noiseless** sub-views of each frame, ``(N, 9, S, S)``; noise is
+  drawn afresh by the patch sampler every time a patch is used (design.md §1);
+* ``demixed.npy``: the demixing targets, each lens's image alone, ``(N, 9, S, S)``;
+* ``objects.npy``: the ground-truth objects ``(N, S, S)``;
+* ``system.json``: the instrument the frames were simulated with;
+* ``manifest.json``: the recipe (frames, seed, object mix, brightness range), the
+  train/validation split and ``count``, the number of frames written so far.
+
+Arrays are float32 ``.npy`` files opened with :func:`numpy.lib.format.open_memmap`, so
+training reads only the patches it needs. Frames are written in order and ``count`` is
+updated atomically (temporary file + :func:`os.replace`) after each frame is flushed, so an
+interrupted generation resumes at the first missing frame and never trusts a half-written
+one. Frame ``i`` depends only on ``(seed, i)``: a resumed dataset equals an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from ..config import N_LENSES, SystemConfig
+from ..phantoms import make_object
+from ..simulate import Simulator
+
+__all__ = [
+    "DATA_FORMAT",
+    "DataRecipe",
+    "TrainingData",
+    "generate_dataset",
+    "split_frames",
+    "training_object",
+]
+
+DATA_FORMAT = "svcode-training-data-1"
+MANIFEST = "manifest.json"
+SYSTEM = "system.json"
+_ARRAYS = ("views", "demixed", "objects")
+
+
+@dataclass(frozen=True)
+class DataRecipe:
+    """What to simulate.
+
+    Attributes
+    ----------
+    frames : int
+        Number of frames ``N``.
+    seed : int
+        Frame ``i`` uses the object seed ``(seed, i)``; the split uses ``seed`` too.
+    val_fraction : float
+        Fraction of frames held out for validation (at least one frame each side).
+    object_kind : str
+        Phantom kind (:data:`svcode_core.phantoms.KINDS`); ``"mixed"`` draws cells, vessels,
+        neurons, beads and scikit-image crops, alone or blended.
+    brightness : (float, float)
+        The object's peak is drawn log-uniformly from this range (dimmer frames see
+        relatively more noise).
+    """
+
+    frames: int
+    seed: int = 0
+    val_fraction: float = 0.1
+    object_kind: str = "mixed"
+    brightness: tuple[float, float] = (0.4, 1.0)
+
+    def validate(self) -> DataRecipe:
+        """Raise ``ValueError`` naming the first bad field; return ``self``."""
+        if not isinstance(self.frames, int) or self.frames < 2:
+            raise ValueError(f"frames must be an integer >= 2 (train + validation), "
+                             f"got {self.frames!r}")
+        if not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"seed must be a non-negative integer, got {self.seed!r}")
+        if not 0 < self.val_fraction < 1:
+            raise ValueError(f"val_fraction must lie in (0, 1), got {self.val_fraction!r}")
+        low, high = self.brightness
+        if not 0 < low <= high <= 1:
+            raise ValueError(f"brightness must satisfy 0 < low <= high <= 1, "
+                             f"got {self.brightness!r}")
+        return self
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-JSON form (stored in the manifest)."""
+        return {"frames": self.frames, "seed": self.seed, "val_fraction": self.val_fraction,
+                "object_kind": self.object_kind, "brightness": list(self.brightness)}
+
+
+def split_frames(frames: int, val_fraction: float, seed: int) -> tuple[list[int], list[int]]:
+    """Split frame indices into train and validation sets by a seeded permutation.
+
+    Returns
+    -------
+    (train, val)
+        Sorted frame indices; ``val`` holds ``round(frames · val_fraction)`` frames, at
+        least one, and ``train`` at least one.
+    """
+    n_val = min(frames - 1, max(1, round(frames * val_fraction)))
+    order = np.random.default_rng([seed, 0x5EED]).permutation(frames)
+    return sorted(order[n_val:].tolist()), sorted(order[:n_val].tolist())
+
+
+def training_object(recipe: DataRecipe, index: int, size: int) -> np.ndarray:
+    """The ground-truth object of frame ``index``: depends only on ``(recipe.seed, index)``.
+
+    Returns
+    -------
+    numpy.ndarray
+        float32 ``(size, size)`` in ``[0, 1]``, peak within ``recipe.brightness``
+        (or all zeros for an empty phantom).
+    """
+    rng = np.random.default_rng([recipe.seed, index])
+    obj = make_object(recipe.object_kind, size, rng)
+    low, high = recipe.brightness
+    peak = float(np.exp(rng.uniform(np.log(low), np.log(high))))
+    top = float(obj.max())
+    return (obj * (peak / top)).astype(np.float32) if top > 0 else obj
+
+
+class TrainingData:
+    """A dataset folder opened read-only (arrays memory-mapped).
+
+    Attributes
+    ----------
+    path : Path
+    system : SystemConfig
+    manifest : dict
+    views, demixed : numpy.memmap
+        ``(count, 9, S, S)`` float32: noiseless sub-views and demixing targets.
+    objects : numpy.memmap
+        ``(count, S, S)`` float32 ground truth.
+    train_frames, val_frames : list of int
+    """
+
+    def __init__(self, path: str | Path, allow_partial: bool = False) -> None:
+        self.path = Path(path)
+        manifest_path = self.path / MANIFEST
+        if not manifest_path.is_file():
+            raise FileNotFoundError(f"not a training dataset (no {MANIFEST}): {self.path}")
+        self.manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
+        if self.manifest.get("format") != DATA_FORMAT:
+            raise ValueError(f"{manifest_path}: not an SV-CoDe training dataset ({DATA_FORMAT})")
+        self.system = SystemConfig.load(self.path / SYSTEM)
+        count, frames = self.manifest["count"], self.manifest["recipe"]["frames"]
+        if count < frames and not allow_partial:
+            raise ValueError(f"{self.path}: only {count} of {frames} frames were generated; "
+                             "rerun `svcode dataset` with the same arguments to finish it")
+        arrays = {name: np.load(self.path / f"{name}.npy", mmap_mode="r") for name in _ARRAYS}
+        self.views, self.demixed, self.objects = (arrays[n][:count] for n in _ARRAYS)
+        self.train_frames = [i for i in self.manifest["train_frames"] if i < count]
+        self.val_frames = [i for i in self.manifest["val_frames"] if i < count]
+
+    def __len__(self) -> int:
+        return len(self.views)
+
+    def __repr__(self) -> str:
+        return (f"TrainingData({str(self.path)!r}, {len(self)} frames of {self.system.name}, "
+                f"{len(self.train_frames)} train / {len(self.val_frames)} val)")
+
+
+def _write_json_atomic(path: Path, data: dict[str, Any]) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
+    os.replace(tmp, path)
+
+
+def _open_arrays(path: Path, shapes: dict[str, tuple[int, ...]], create: bool) -> dict:
+    mode = "w+" if create else "r+"
+    arrays = {}
+    for name, shape in shapes.items():
+        array = np.lib.format.open_memmap(
+            path / f"{name}.npy", mode=mode, dtype=np.float32, shape=shape if create else None
+        )
+        if array.shape != shape or array.dtype != np.float32:
+            raise ValueError(f"{path / f'{name}.npy'} has shape {array.shape} {array.dtype}, "
+                             f"expected {shape} float32")
+        arrays[name] = array
+    return arrays
+
+
+def generate_dataset(
+    out_dir: str | Path,
+    system: SystemConfig,
+    recipe: DataRecipe,
+    simulator: Simulator | None = None,
+    progress: bool = True,
+) -> TrainingData:
+    """Simulate ``recipe.frames`` noiseless frames into ``out_dir`` (or finish a partial one).
+
+    Parameters
+    ----------
+    out_dir : str or Path
+        Dataset folder; created if missing. If it holds a partial dataset of the same
+        system and recipe, generation resumes at the first missing frame.
+    system : SystemConfig
+    recipe : DataRecipe
+    simulator : Simulator, optional
+        Default ``Simulator(system)`` (pupil-model optics).
+    progress : bool
+        Show a progress bar.
+
+    Returns
+    -------
+    TrainingData
+
+    Raises
+    ------
+    ValueError
+        If ``out_dir`` holds a dataset of another system or recipe.
+    """
+    system = system.validate()
+    recipe = recipe.validate()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    manifest_path = out / MANIFEST
+    size = system.sub_view_size
+    shapes = {
+        "views": (recipe.frames, N_LENSES, size, size),
+        "demixed": (recipe.frames, N_LENSES, size, size),
+        "objects": (recipe.frames, size, size),
+    }
+    if manifest_path.is_file():
+        manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
+        stored_system = SystemConfig.load(out / SYSTEM)
+        if stored_system != system or manifest.get("recipe") != recipe.to_dict():
+            raise ValueError(
+                f"{out} already holds a dataset of another system or recipe "
+                f"({stored_system.name}, {manifest.get('recipe')}); choose a new folder"
+            )
+        arrays = _open_arrays(out, shapes, create=False)
+    else:
+        train, val = split_frames(recipe.frames, recipe.val_fraction, recipe.seed)
+        system.save(out / SYSTEM)
+        arrays = _open_arrays(out, shapes, create=True)
+        manifest = {
+            "format": DATA_FORMAT,
+            "system": system.name,
+            "recipe": recipe.to_dict(),
+            "object_seeds": "frame i: numpy.random.default_rng([seed, i])",
+            "noise": "none stored: drawn afresh by the patch sampler",
+            "dtype": "float32",
+            "shapes": {name: list(shape) for name, shape in shapes.items()},
+            "train_frames": train,
+            "val_frames": val,
+            "count": 0,
+            "seconds": 0.0,
+        }
+        _write_json_atomic(manifest_path, manifest)
+    start, spent = manifest["count"], manifest["seconds"]
+    if start < recipe.frames:
+        simulator = simulator or Simulator(system)
+        clock = time.perf_counter()
+        for index in tqdm(range(start, recipe.frames), initial=start, total=recipe.frames,
+                          desc="simulate frames", disable=not progress):
+            obj = training_object(recipe, index, size)
+            scene = simulator.simulate(obj, seed=0, noise=False)
+            arrays["views"][index] = scene.views
+            arrays["demixed"][index] = scene.demixed
+            arrays["objects"][index] = scene.object
+            for array in arrays.values():
+                array.flush()
+            manifest["count"] = index + 1
+            manifest["seconds"] = round(spent + time.perf_counter() - clock, 3)
+            _write_json_atomic(manifest_path, manifest)
+    del arrays
+    return TrainingData(out)
+

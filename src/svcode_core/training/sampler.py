@@ -1,0 +1,233 @@
+"""Training patches: aligned crops of the nine sub-views with their global origins.
+
+Every frame is cut into ``P × P`` patches at the configured stride (``P / 2`` in the
+presets, the last patch flush with the edge, :class:`~svcode_core.tiling.TileGrid`). A
+patch holds the nine noiseless view crops with sensor noise added on access, the nine
+demixing targets, the object crop, and the crop's origin in sub-view pixels, which the
+network turns into global coordinates. No flips or rotations: the PSFs depend on the field
+position, so a flipped patch would not be a valid measurement at its coordinates.
+
+Noise is drawn only on the pixels that the sensor covers; the zero padding outside the
+sensor stays exactly zero, as in a real padded frame. For one origin the nine view crops
+come from sensor regions that do not overlap whenever every pair of chief rays is at
+least ``P`` apart along rows or columns (lens pitch 144 > 96 in ``cm2-mini``, 900 > 480
+in ``cm2-v2``); independent noise per view crop is then exactly noise on the sensor.
+:func:`check_disjoint_view_patches` enforces this.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+
+import numpy as np
+import torch
+
+from ..config import SystemConfig
+from ..geometry import extract_sub_views
+from ..noise import apply_sensor_noise
+from ..tiling import TileGrid
+from .dataset import TrainingData
+
+__all__ = ["EpochSampler", "PatchDataset", "check_disjoint_view_patches", "derive_seed"]
+
+
+def derive_seed(*entropy: int) -> int:
+    """A 63-bit seed mixed from integers (NumPy ``SeedSequence``): distinct inputs give
+    statistically independent seeds."""
+    state = np.random.SeedSequence([int(e) for e in entropy]).generate_state(1, np.uint64)
+    return int(state[0] >> np.uint64(1))
+
+
+def check_disjoint_view_patches(system: SystemConfig, patch: int) -> None:
+    """Check that the nine view crops of one patch never share a sensor pixel.
+
+    Crop ``ℓ`` of a patch at origin ``o`` covers padded pixels ``c_ℓ - S//2 + o`` to
+    ``+ P``, so two crops overlap for every ``o`` exactly when their chief rays are less
+    than ``P`` apart along both axes.
+
+    Raises
+    ------
+    ValueError
+        Naming the two lenses whose crops would overlap.
+    """
+    rays = np.asarray(system.chief_rays)
+    for a in range(len(rays)):
+        for b in range(a + 1, len(rays)):
+            if np.all(np.abs(rays[a] - rays[b]) < patch):
+                raise ValueError(
+                    f"patches of {patch} px from lenses {a} and {b} (chief rays "
+                    f"{tuple(rays[a])}, {tuple(rays[b])}) share sensor pixels: independent "
+                    "noise per view would be wrong; use a patch smaller than the lens pitch"
+                )
+
+
+class PatchDataset(torch.utils.data.Dataset):
+    """All patches of some frames of a :class:`TrainingData`, with noise drawn on access.
+
+    Parameters
+    ----------
+    data : TrainingData
+    frames : sequence of int
+        Frames to cut (e.g. ``data.train_frames``).
+    fixed_noise : bool
+        ``True`` (validation): patch ``i`` always gets the same noise draw, seeded by
+        ``(seed, i)``. ``False`` (training): every access draws fresh noise.
+    seed : int
+        Base seed of the noise.
+    noise : bool
+        ``False`` returns the noiseless views (for checks).
+
+    Notes
+    -----
+    Items are dictionaries of ``views (9, P, P)``, ``demixed (9, P, P)``, ``object
+    (1, P, P)`` float32 tensors, ``origin (2,)`` int64 (row, col in sub-view pixels) and
+    ``index``. An item may be requested by index, or by ``(index, noise_seed)`` to fix the
+    draw (:class:`EpochSampler` does this, so training is reproducible and resumable).
+    """
+
+    def __init__(
+        self,
+        data: TrainingData,
+        frames: Sequence[int],
+        fixed_noise: bool = False,
+        seed: int = 0,
+        noise: bool = True,
+    ) -> None:
+        system = data.system
+        frames = sorted({int(f) for f in frames})
+        if not frames:
+            raise ValueError("no frames selected for the patch dataset")
+        if frames[0] < 0 or frames[-1] >= len(data):
+            raise ValueError(f"frame indices must lie in [0, {len(data)}), "
+                             f"got {frames[0]}..{frames[-1]}")
+        self.patch = system.patch_size
+        check_disjoint_view_patches(system, self.patch)
+        self.data, self.system, self.frames = data, system, frames
+        self.origins = TileGrid(system.sub_view_size, self.patch, system.patch_stride).origins
+        self.fixed_noise, self.seed, self.noise = fixed_noise, int(seed), noise
+        self._generator = torch.Generator().manual_seed(derive_seed(self.seed, 2))
+        window = torch.zeros(system.padded_shape)
+        window[system.sensor_window] = 1
+        self.sensor_mask = extract_sub_views(window, system).numpy().astype(bool)  # (9, S, S)
+
+    def __len__(self) -> int:
+        return len(self.frames) * len(self.origins)
+
+    def locate(self, index: int) -> tuple[int, np.ndarray]:
+        """Frame and origin ``(row, col)`` of patch ``index``."""
+        if not 0 <= index < len(self):
+            raise IndexError(f"patch index {index} out of range [0, {len(self)})")
+        frame, position = divmod(index, len(self.origins))
+        return self.frames[frame], self.origins[position]
+
+    def _noise_generator(self, index: int, noise_seed: int | None) -> torch.Generator:
+        if noise_seed is not None:
+            return torch.Generator().manual_seed(int(noise_seed))
+        if self.fixed_noise:
+            return torch.Generator().manual_seed(derive_seed(self.seed, 1, index))
+        return self._generator
+
+    def __getitem__(self, key: int | tuple[int, int]) -> dict[str, torch.Tensor | int]:
+        index, noise_seed = (key if isinstance(key, tuple) else (key, None))
+        index = int(index)
+        frame, (r, c) = self.locate(index)
+        crop = (slice(r, r + self.patch), slice(c, c + self.patch))
+        clean = torch.from_numpy(np.array(self.data.views[frame][(slice(None), *crop)]))
+        if self.noise:
+            inside = torch.from_numpy(self.sensor_mask[(slice(None), *crop)])
+            generator = self._noise_generator(index, noise_seed)
+            views = apply_sensor_noise(clean, self.system.noise, generator) * inside
+        else:
+            views = clean
+        return {
+            "views": views,
+            "demixed": torch.from_numpy(np.array(self.data.demixed[frame][(slice(None), *crop)])),
+            "object": torch.from_numpy(np.array(self.data.objects[frame][crop]))[None],
+            "origin": torch.tensor([r, c], dtype=torch.int64),
+            "index": index,
+        }
+
+
+class EpochSampler(torch.utils.data.Sampler):
+    """A seeded random subset of patches per epoch, each with its own noise seed.
+
+    Epoch ``e`` draws ``per_epoch`` patches without replacement (repeating whole
+    permutations if ``per_epoch`` exceeds the dataset) from a generator seeded by
+    ``(seed, e)``, and one noise seed per draw, so every use of a patch sees fresh noise
+    and an epoch is reproduced exactly after a resume. With ``world_size > 1`` rank ``k``
+    takes draws (runs, see below) ``k, k + world_size, ...``; each rank gets
+    ``per_epoch // world_size`` (rounded down to whole runs).
+
+    With ``group > 1`` the draws come in runs of ``group`` patches that share their origin
+    (from different frames, where there are enough): a batch made of whole runs needs the
+    coordinate masks of only ``batch / group`` origins, which is most of the training cost
+    on a CPU. Every patch is still drawn at least once per permutation.
+
+    Parameters
+    ----------
+    size : int
+        Number of patches in the dataset.
+    per_epoch : int
+        Patches per epoch (over all ranks).
+    seed : int
+    rank, world_size : int
+    group : int
+        Patches per run with a shared origin.
+    origins : int
+        Origins per frame (patch ``i`` has origin ``i % origins``); needed when ``group > 1``.
+    """
+
+    def __init__(
+        self, size: int, per_epoch: int, seed: int = 0, rank: int = 0, world_size: int = 1,
+        group: int = 1, origins: int = 1,
+    ) -> None:
+        if size < 1:
+            raise ValueError(f"the dataset has no patches (size {size})")
+        if not 0 <= rank < world_size:
+            raise ValueError(f"rank {rank} out of range for world size {world_size}")
+        if per_epoch < world_size:
+            raise ValueError(f"per_epoch ({per_epoch}) must be at least the number of "
+                             f"processes ({world_size})")
+        if not isinstance(group, int) or group < 1:
+            raise ValueError(f"group must be a positive integer, got {group!r}")
+        if not isinstance(origins, int) or origins < 1 or size % origins:
+            raise ValueError(f"origins ({origins!r}) must be a positive divisor of the "
+                             f"dataset size ({size})")
+        self.size, self.per_epoch, self.seed = size, per_epoch, seed
+        self.rank, self.world_size = rank, world_size
+        self.group, self.origins = group, origins
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        """Select the epoch whose draws :meth:`__iter__` yields."""
+        self.epoch = int(epoch)
+
+    def __len__(self) -> int:
+        return self.per_epoch // (self.world_size * self.group) * self.group
+
+    def _permutation(self, generator: torch.Generator) -> torch.Tensor:
+        """Every patch once (``group == 1``), or runs of ``group`` patches sharing an
+        origin, runs shuffled: each origin's frames in random order, wrapped around to
+        fill the last run, so every patch comes at least once and a few twice."""
+        if self.group == 1:
+            return torch.randperm(self.size, generator=generator)
+        frames = self.size // self.origins
+        length = -(-frames // self.group) * self.group
+        runs = []
+        for origin in range(self.origins):
+            order = torch.randperm(frames, generator=generator)
+            order = order[torch.arange(length) % frames] * self.origins + origin
+            runs += list(torch.split(order, self.group))
+        shuffled = torch.randperm(len(runs), generator=generator)
+        return torch.cat([runs[i] for i in shuffled.tolist()])
+
+    def __iter__(self) -> Iterator[tuple[int, int]]:
+        generator = torch.Generator().manual_seed(derive_seed(self.seed, 3, self.epoch))
+        rounds = -(-self.per_epoch // self.size)
+        order = torch.cat([self._permutation(generator) for _ in range(rounds)])
+        order = order[: self.per_epoch]
+        noise = torch.randint(0, 2**62, (self.per_epoch,), generator=generator)
+        run = self.group
+        for start in range(self.rank * run, len(self) * self.world_size, self.world_size * run):
+            for position in range(start, start + run):
+                yield int(order[position]), int(noise[position])

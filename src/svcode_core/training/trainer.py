@@ -1,0 +1,528 @@
+"""Training SV-CoDe on a simulated dataset: Adam, cosine annealing, checkpoints, logs.
+
+A run folder holds
+
+* ``checkpoints/``: ``epoch-NNNN.safetensors`` (weights, a :func:`save_model` file) and
+  ``epoch-NNNN.pt`` (optimizer, scheduler, RNG state, history: plain tensors and numbers,
+  read back with ``torch.load(weights_only=True)``), plus ``latest.json`` naming them.
+  Each file is written to a temporary name and moved into place with :func:`os.replace`,
+  and ``latest.json`` is replaced last, so an interruption at any moment leaves the
+  previous complete checkpoint in charge;
+* ``best.safetensors``: the model with the best validation reconstruction PSNR, with the
+  system and the training metadata (:func:`~svcode_core.network.save_model`);
+* ``log.csv`` and ``log.json`` (per-epoch metrics; the JSON also has the configurations
+  and every step's loss) and ``loss.png`` (the curves).
+
+Training is reproducible: the model initialisation, each epoch's patch draw and every
+noise draw follow from the seed and the epoch, so ``resume`` after an interruption
+continues exactly as the uninterrupted run would (on the same device and thread count).
+bf16 autocast is used on CUDA only; the loss is always computed in float32.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import json
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from safetensors.torch import load_file
+from torch.nn.parallel import DistributedDataParallel
+from tqdm.auto import tqdm
+
+from ..network import ModelConfig, SVCoDe, save_model
+from .dataset import TrainingData
+from .distributed import DistInfo, all_reduce_sum, barrier
+from .loss import psnr, ssim_per_sample, svcode_loss
+from .sampler import EpochSampler, PatchDataset, derive_seed
+
+__all__ = ["TrainConfig", "Trainer"]
+
+CHECKPOINTS = "checkpoints"
+LATEST = "latest.json"
+BEST = "best.safetensors"
+_METRICS = ("loss", "recon_psnr", "recon_ssim", "demix_psnr", "demix_ssim")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation settings of one run.
+
+    Attributes
+    ----------
+    epochs : int
+    batch_size : int
+        Patches per step and process.
+    lr : float
+        Peak Adam learning rate: reached linearly over ``warmup_steps`` steps, then
+        cosine-annealed per step to ``lr · min_lr_ratio`` at the last step.
+    min_lr_ratio : float
+    warmup_steps : int
+        Length of the linear warm-up. Without it, Adam's first full-size steps can push
+        the sigmoid outputs of both stages into saturation on the mostly dark patches,
+        where their gradient vanishes and training stalls at an all-zero prediction.
+    grad_clip : float
+        Maximum global gradient norm.
+    patches_per_epoch : int or None
+        Training patches drawn per epoch over all processes; ``None``: all of them.
+    val_patches : int or None
+        Size of the fixed validation subset; ``None``: every validation patch.
+    alpha, beta : float
+        Weights of ``1 − SSIM`` and MSE in the loss.
+    seed : int
+        Seeds the initialisation, the patch draws and the noise.
+    workers : int
+        DataLoader worker processes.
+    same_origin : int
+        Training patches come in runs of this many that share their origin
+        (:class:`EpochSampler` ``group``); the network computes the coordinate masks once
+        per distinct origin in a batch, so ``same_origin = batch_size`` makes a CPU step
+        several times cheaper. 1: independent draws.
+    """
+
+    epochs: int = 10
+    batch_size: int = 4
+    lr: float = 1e-3
+    min_lr_ratio: float = 0.01
+    warmup_steps: int = 100
+    grad_clip: float = 1.0
+    patches_per_epoch: int | None = None
+    val_patches: int | None = None
+    alpha: float = 1.0
+    beta: float = 1.0
+    seed: int = 0
+    workers: int = 0
+    same_origin: int = 1
+
+    def validate(self) -> TrainConfig:
+        """Raise ``ValueError`` naming the first bad field; return ``self``."""
+        for name in ("epochs", "batch_size"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        for name in ("patches_per_epoch", "val_patches"):
+            value = getattr(self, name)
+            if value is not None and (not isinstance(value, int) or value < 1):
+                raise ValueError(f"{name} must be a positive integer or None, got {value!r}")
+        for name in ("lr", "grad_clip"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+        if not isinstance(self.warmup_steps, int) or self.warmup_steps < 0:
+            raise ValueError(f"warmup_steps must be a non-negative integer, "
+                             f"got {self.warmup_steps!r}")
+        if not 0 <= self.min_lr_ratio <= 1:
+            raise ValueError(f"min_lr_ratio must lie in [0, 1], got {self.min_lr_ratio!r}")
+        for name in ("alpha", "beta"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+        if not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"seed must be a non-negative integer, got {self.seed!r}")
+        if not isinstance(self.same_origin, int) or self.same_origin < 1:
+            raise ValueError(f"same_origin must be a positive integer, got {self.same_origin!r}")
+        if not isinstance(self.workers, int) or self.workers < 0:
+            raise ValueError(f"workers must be a non-negative integer, got {self.workers!r}")
+        return self
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-JSON dictionary."""
+        return dataclasses.asdict(self)
+
+
+@dataclass(frozen=True)
+class _WarmupCosine:
+    """Learning-rate factor at step ``t``: linear warm-up, then cosine to ``floor``."""
+
+    warmup: int
+    total: int
+    floor: float
+
+    def __call__(self, step: int) -> float:
+        if step < self.warmup:
+            return (step + 1) / self.warmup
+        span = max(self.total - self.warmup, 1)
+        progress = min((step - self.warmup) / span, 1.0)
+        return self.floor + (1 - self.floor) * 0.5 * (1 + math.cos(math.pi * progress))
+
+
+def _atomic_write(path: Path, write: Callable[[Path], Any]) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    write(tmp)
+    os.replace(tmp, path)
+
+
+def _atomic_text(path: Path, text: str) -> None:
+    _atomic_write(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))
+
+
+def _collate(items: list[dict[str, Any]]) -> dict[str, torch.Tensor]:
+    return {key: torch.stack([item[key] for item in items]) for key in
+            ("views", "demixed", "object", "origin")}
+
+
+class Trainer:
+    """Train an :class:`~svcode_core.network.SVCoDe` on a :class:`TrainingData` folder.
+
+    Parameters
+    ----------
+    data : TrainingData
+    out_dir : str or Path
+        Run folder (created).
+    model_config : ModelConfig
+    config : TrainConfig
+    device : str or torch.device
+    dist : DistInfo, optional
+        This process's place in a ``torchrun`` job; the model is wrapped in
+        DistributedDataParallel when there are several processes.
+    progress : bool
+        Show a progress bar per epoch (rank 0 only).
+
+    Examples
+    --------
+    >>> trainer = Trainer(TrainingData("data"), "run", ModelConfig.mini(),
+    ...                   TrainConfig(epochs=3))                        # doctest: +SKIP
+    >>> history = trainer.fit()                                         # doctest: +SKIP
+    """
+
+    def __init__(
+        self,
+        data: TrainingData,
+        out_dir: str | Path,
+        model_config: ModelConfig,
+        config: TrainConfig,
+        device: str | torch.device = "cpu",
+        dist: DistInfo | None = None,
+        progress: bool = True,
+    ) -> None:
+        self.data, self.system = data, data.system
+        self.config = config.validate()
+        self.model_config = model_config.validate()
+        self.out = Path(out_dir)
+        self.device = torch.device(device)
+        self.dist = dist or DistInfo()
+        self.progress = progress and self.dist.is_main
+        self.autocast = self.device.type == "cuda"
+
+        torch.manual_seed(derive_seed(config.seed, 4))
+        self.model = SVCoDe(model_config).to(self.device)
+        self.net: torch.nn.Module = self.model
+        if self.dist.active:
+            ids = [self.device.index] if self.device.type == "cuda" else None
+            self.net = DistributedDataParallel(self.model, device_ids=ids)
+
+        self.train_set = PatchDataset(data, data.train_frames, fixed_noise=False, seed=config.seed)
+        per_epoch = config.patches_per_epoch or len(self.train_set)
+        self.sampler = EpochSampler(len(self.train_set), per_epoch, config.seed,
+                                    self.dist.rank, self.dist.world_size,
+                                    config.same_origin, len(self.train_set.origins))
+        self.steps_per_epoch = len(self.sampler) // config.batch_size
+        if self.steps_per_epoch < 1:
+            raise ValueError(
+                f"{len(self.sampler)} patches per process and epoch make no batch of "
+                f"{config.batch_size}: raise patches_per_epoch or lower batch_size"
+            )
+        self.val_set = PatchDataset(data, data.val_frames, fixed_noise=True, seed=config.seed)
+        val_indices = np.arange(len(self.val_set))
+        if config.val_patches is not None and config.val_patches < len(val_indices):
+            rng = np.random.default_rng(derive_seed(config.seed, 5))
+            val_indices = np.sort(rng.choice(val_indices, config.val_patches, replace=False))
+        self.val_indices = val_indices[self.dist.rank :: self.dist.world_size].tolist()
+        self.val_total = len(val_indices)
+
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.lr)
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(
+            self.optimizer, _WarmupCosine(config.warmup_steps,
+                                          config.epochs * self.steps_per_epoch,
+                                          config.min_lr_ratio)
+        )
+        self.epoch = 0  # completed epochs
+        self.global_step = 0
+        self.history: list[dict[str, float]] = []
+        self.step_losses: list[float] = []
+        self.best: dict[str, float] = {}
+
+    # ------------------------------------------------------------------ steps
+    def _to_device(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        return {k: v.to(self.device, non_blocking=True) if k != "origin" else v
+                for k, v in batch.items()}
+
+    def _forward(
+        self, net: torch.nn.Module, batch: dict[str, torch.Tensor]
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.autocast):
+            return net(batch["views"], batch["origin"], self.system.sub_view_size)
+
+    def train_step(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
+        """One optimisation step on a collated batch; returns the loss parts.
+
+        Raises
+        ------
+        FloatingPointError
+            If the loss is NaN or infinite (training diverged; lower the learning rate).
+        """
+        batch = self._to_device(batch)
+        self.net.train()
+        demixed, recon = self._forward(self.net, batch)
+        loss, parts = svcode_loss(demixed, recon, batch["demixed"], batch["object"],
+                                  self.config.alpha, self.config.beta)
+        value = float(loss.detach())
+        if not math.isfinite(value):
+            raise FloatingPointError(
+                f"the loss became {value} at step {self.global_step}: training "
+                "diverged; lower --lr or check the data"
+            )
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.config.grad_clip)
+        self.optimizer.step()
+        self.scheduler.step()
+        self.global_step += 1
+        return {"loss": value, **parts, "grad_norm": float(grad_norm)}
+
+    def train_epoch(self, epoch: int) -> dict[str, float]:
+        """Run one epoch's steps; returns the mean loss parts over all processes."""
+        self.sampler.set_epoch(epoch)
+        loader = torch.utils.data.DataLoader(
+            self.train_set, batch_size=self.config.batch_size, sampler=self.sampler,
+            drop_last=True, num_workers=self.config.workers, collate_fn=_collate,
+        )
+        sums = torch.zeros(4, dtype=torch.float64)
+        bar = tqdm(loader, total=self.steps_per_epoch, desc=f"epoch {epoch + 1}/"
+                   f"{self.config.epochs}", disable=not self.progress, leave=False)
+        for batch in bar:
+            parts = self.train_step(batch)
+            self.step_losses.append(parts["loss"])
+            sums += torch.tensor([parts["loss"], parts["demix"], parts["recon"],
+                                  parts["grad_norm"]], dtype=torch.float64)
+            bar.set_postfix(loss=f"{parts['loss']:.4f}",
+                            lr=f"{self.scheduler.get_last_lr()[0]:.2e}")
+        sums = all_reduce_sum(sums.to(self._reduce_device), self.dist).cpu()
+        sums /= self.steps_per_epoch * self.dist.world_size
+        return dict(zip(("train_loss", "train_demix", "train_recon", "grad_norm"),
+                        sums.tolist(), strict=True))
+
+    @property
+    def _reduce_device(self) -> torch.device:
+        on_gpu = self.dist.active and self.device.type == "cuda"
+        return self.device if on_gpu else torch.device("cpu")
+
+    @torch.no_grad()
+    def validate(self) -> dict[str, float]:
+        """Loss, PSNR and SSIM of the reconstruction and the demixed views on the fixed
+        validation patches (fixed noise), averaged over patches and processes."""
+        self.model.eval()
+        sums = torch.zeros(len(_METRICS) + 1, dtype=torch.float64)
+        size = self.config.batch_size
+        with self.model.cache_masks(max_bytes=2**28):
+            for start in range(0, len(self.val_indices), size):
+                items = [self.val_set[i] for i in self.val_indices[start : start + size]]
+                batch = self._to_device(_collate(items))
+                demixed, recon = self._forward(self.model, batch)
+                loss, _ = svcode_loss(demixed, recon, batch["demixed"], batch["object"],
+                                      self.config.alpha, self.config.beta)
+                n = len(items)
+                sums += torch.tensor([
+                    float(loss) * n,
+                    float(psnr(recon, batch["object"]).sum()),
+                    float(ssim_per_sample(recon, batch["object"]).sum()),
+                    float(psnr(demixed, batch["demixed"]).sum()),
+                    float(ssim_per_sample(demixed, batch["demixed"]).sum()),
+                    n,
+                ], dtype=torch.float64)
+        sums = all_reduce_sum(sums.to(self._reduce_device), self.dist).cpu()
+        count = max(sums[-1].item(), 1.0)
+        return {f"val_{name}": sums[i].item() / count for i, name in enumerate(_METRICS)}
+
+    # ---------------------------------------------------------------- the run
+    def fit(self, resume: bool = False) -> list[dict[str, float]]:
+        """Train for ``config.epochs`` epochs (the remaining ones when resuming).
+
+        Parameters
+        ----------
+        resume : bool
+            Continue from the run folder's latest checkpoint.
+
+        Returns
+        -------
+        list of dict
+            The per-epoch history.
+
+        Raises
+        ------
+        FileNotFoundError
+            ``resume`` without a checkpoint in the run folder.
+        """
+        if self.dist.is_main:
+            self.out.mkdir(parents=True, exist_ok=True)
+        barrier(self.dist)
+        if resume:
+            self.load_checkpoint()
+        for epoch in range(self.epoch, self.config.epochs):
+            start = time.perf_counter()
+            record: dict[str, float] = {"epoch": epoch + 1}
+            record.update(self.train_epoch(epoch))
+            record.update(self.validate())
+            record["lr"] = self.scheduler.get_last_lr()[0]
+            record["step"] = self.global_step
+            record["seconds"] = round(time.perf_counter() - start, 3)
+            self.history.append(record)
+            self.epoch = epoch + 1
+            if self.dist.is_main:
+                if not self.best or record["val_recon_psnr"] > self.best["val_recon_psnr"]:
+                    self.best = dict(record)
+                    self._save_best()
+                self.save_checkpoint()
+                self._write_logs()
+                if self.progress:
+                    tqdm.write(_summary(record))
+            barrier(self.dist)
+        return self.history
+
+    def _metadata(self) -> dict[str, Any]:
+        return {
+            "system": self.system.name,
+            "model_config": self.model_config.to_dict(),
+            "train_config": self.config.to_dict(),
+            "data": {"path": str(self.data.path.resolve()),
+                     "recipe": self.data.manifest["recipe"],
+                     "train_frames": len(self.data.train_frames),
+                     "val_frames": len(self.data.val_frames),
+                     "train_patches": len(self.train_set),
+                     "val_patches": self.val_total},
+            "world_size": self.dist.world_size,
+            "device": str(self.device),
+        }
+
+    def _save_best(self) -> None:
+        extra = {**self._metadata(), "epoch": self.best["epoch"], "metrics": self.best}
+        _atomic_write(self.out / BEST, lambda tmp: save_model(tmp, self.model, self.system, extra))
+
+    # ------------------------------------------------------------ checkpoints
+    def save_checkpoint(self) -> Path:
+        """Write the checkpoint of the completed epochs and point ``latest.json`` at it."""
+        folder = self.out / CHECKPOINTS
+        folder.mkdir(parents=True, exist_ok=True)
+        name = f"epoch-{self.epoch:04d}"
+        weights, state_path = folder / f"{name}.safetensors", folder / f"{name}.pt"
+        state = {
+            "epoch": self.epoch,
+            "global_step": self.global_step,
+            "optimizer": self.optimizer.state_dict(),
+            "scheduler": self.scheduler.state_dict(),
+            "torch_rng": torch.get_rng_state(),
+            "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
+            "history": self.history,
+            "step_losses": self.step_losses,
+            "best": self.best,
+            "model_config": self.model_config.to_json(),
+            "train_config": json.dumps(self.config.to_dict()),
+        }
+        _atomic_write(weights, lambda tmp: save_model(tmp, self.model, self.system,
+                                                      {"epoch": self.epoch}))
+        _atomic_write(state_path, lambda tmp: torch.save(state, tmp))
+        previous = self._latest()
+        _atomic_text(folder / LATEST, json.dumps(
+            {"epoch": self.epoch, "weights": weights.name, "state": state_path.name}) + "\n")
+        if previous is not None and previous["epoch"] != self.epoch:
+            for key in ("weights", "state"):
+                (folder / previous[key]).unlink(missing_ok=True)
+        return weights
+
+    def _latest(self) -> dict[str, Any] | None:
+        path = self.out / CHECKPOINTS / LATEST
+        return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else None
+
+    def load_checkpoint(self) -> int:
+        """Restore the latest checkpoint of the run folder; returns its epoch.
+
+        Raises
+        ------
+        FileNotFoundError
+            If the run folder has no checkpoint.
+        ValueError
+            If the checkpoint was written with another model or training configuration.
+        """
+        latest = self._latest()
+        if latest is None:
+            raise FileNotFoundError(f"no checkpoint to resume from in {self.out / CHECKPOINTS}")
+        folder = self.out / CHECKPOINTS
+        state = torch.load(folder / latest["state"], map_location="cpu", weights_only=True)
+        stored = {"model_config": state["model_config"], "train_config": state["train_config"]}
+        current = {"model_config": self.model_config.to_json(),
+                   "train_config": json.dumps(self.config.to_dict())}
+        for key in stored:
+            if json.loads(stored[key]) != json.loads(current[key]):
+                differing = sorted(
+                    k for k, v in json.loads(current[key]).items()
+                    if json.loads(stored[key]).get(k) != v
+                )
+                raise ValueError(f"the checkpoint in {folder} was written with another "
+                                 f"{key.replace('_', ' ')} (differs in {differing}); resume "
+                                 "with the original settings or start a new run folder")
+        weights = load_file(str(folder / latest["weights"]), device=str(self.device))
+        self.model.load_state_dict(weights, strict=True)
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.scheduler.load_state_dict(state["scheduler"])
+        torch.set_rng_state(state["torch_rng"])
+        if state["cuda_rng"] and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(state["cuda_rng"])
+        self.epoch, self.global_step = state["epoch"], state["global_step"]
+        self.history, self.step_losses = state["history"], state["step_losses"]
+        self.best = state["best"]
+        return self.epoch
+
+    # ------------------------------------------------------------------- logs
+    def _write_logs(self) -> None:
+        columns = list(self.history[0])
+        text = io.StringIO()
+        writer = csv.DictWriter(text, fieldnames=columns, lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(self.history)
+        _atomic_text(self.out / "log.csv", text.getvalue())
+        log = {**self._metadata(), "history": self.history, "best": self.best,
+               "step_losses": self.step_losses}
+        _atomic_text(self.out / "log.json", json.dumps(log, indent=1) + "\n")
+        _atomic_write(self.out / "loss.png", lambda tmp: self.plot(tmp))
+
+    def plot(self, path: str | Path) -> None:
+        """Loss curves (per step and per epoch, train and validation) and validation PSNR."""
+        figure = Figure(figsize=(9, 3.6), layout="constrained")
+        FigureCanvasAgg(figure)
+        ax_loss, ax_psnr = figure.subplots(1, 2)
+        steps = np.arange(1, len(self.step_losses) + 1)
+        ax_loss.plot(steps, self.step_losses, color="0.75", lw=0.8, label="train (step)")
+        epoch_steps = [r["step"] for r in self.history]
+        ax_loss.plot(epoch_steps, [r["train_loss"] for r in self.history], "o-",
+                     label="train (epoch mean)")
+        ax_loss.plot(epoch_steps, [r["val_loss"] for r in self.history], "s-",
+                     label="validation")
+        ax_loss.set(xlabel="step", ylabel="loss  Σ α(1−SSIM) + β·MSE", yscale="log")
+        ax_loss.legend()
+        epochs = [r["epoch"] for r in self.history]
+        ax_psnr.plot(epochs, [r["val_recon_psnr"] for r in self.history], "o-",
+                     label="reconstruction")
+        ax_psnr.plot(epochs, [r["val_demix_psnr"] for r in self.history], "s-",
+                     label="demixed views")
+        ax_psnr.set(xlabel="epoch", ylabel="validation PSNR (dB)")
+        ax_psnr.legend()
+        figure.suptitle(f"SV-CoDe training on {self.system.name}")
+        figure.savefig(path, format="png", dpi=100)
+
+
+def _summary(record: dict[str, float]) -> str:
+    return (f"epoch {record['epoch']}: train {record['train_loss']:.4f}, val "
+            f"{record['val_loss']:.4f}, recon PSNR {record['val_recon_psnr']:.2f} dB / "
+            f"SSIM {record['val_recon_ssim']:.3f}, demix PSNR {record['val_demix_psnr']:.2f} dB "
+            f"({record['seconds']:.0f} s)")

@@ -1,0 +1,302 @@
+"""Training data, patch sampler, loss, trainer, checkpoints and the train/dataset commands."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from test_cm2 import gaussian_psfs
+
+from svcode_core.cm2 import CM2Operator
+from svcode_core.config import SystemConfig
+from svcode_core.geometry import extract_sub_views
+from svcode_core.network import ModelConfig, load_model
+from svcode_core.simulate import Simulator
+from svcode_core.training import (
+    DataRecipe,
+    EpochSampler,
+    PatchDataset,
+    TrainConfig,
+    Trainer,
+    TrainingData,
+    check_disjoint_view_patches,
+    generate_dataset,
+    split_frames,
+    stage_loss,
+    svcode_loss,
+)
+
+TINY_MODEL = ModelConfig(
+    width=4, view_width=1, demix_enc_blocks=(1,), demix_middle_blocks=1,
+    demix_dec_blocks=(1,), recon_enc_blocks=(1,), recon_middle_blocks=1,
+    recon_dec_blocks=(1,), mlp_hidden=8, pe_bands=2,
+).validate()
+
+
+RECIPE = DataRecipe(frames=4, seed=3, val_fraction=0.25, object_kind="beads")
+
+
+def tiny_simulator(system: SystemConfig) -> Simulator:
+    return Simulator(system, CM2Operator.from_psfs(system, gaussian_psfs(system), rank=2))
+
+
+@pytest.fixture(scope="module")
+def tiny_data(tmp_path_factory) -> TrainingData:
+    from conftest import tiny_system
+
+    system = tiny_system.__wrapped__()
+    out = tmp_path_factory.mktemp("data")
+    return generate_dataset(out, system, RECIPE, tiny_simulator(system), progress=False)
+
+
+# ----------------------------------------------------------------------------- dataset
+def test_split_is_a_seeded_partition():
+    train, val = split_frames(20, 0.2, seed=1)
+    assert len(val) == 4 and sorted(train + val) == list(range(20))
+    assert split_frames(20, 0.2, seed=1) == (train, val)
+    assert split_frames(20, 0.2, seed=2) != (train, val)
+    assert len(split_frames(2, 0.01, seed=0)[1]) == 1  # never an empty side
+
+
+def test_dataset_contents_and_manifest(tiny_data):
+    system = tiny_data.system
+    size = system.sub_view_size
+    assert tiny_data.views.shape == (4, 9, size, size)
+    assert tiny_data.objects.shape == (4, size, size)
+    manifest = json.loads((tiny_data.path / "manifest.json").read_text())
+    assert manifest["count"] == 4 and manifest["recipe"]["seed"] == 3
+    assert sorted(tiny_data.train_frames + tiny_data.val_frames) == [0, 1, 2, 3]
+    # stored views are the noiseless sub-views of the stored object
+    sim = tiny_simulator(system)
+    scene = sim.simulate(np.array(tiny_data.objects[2]), noise=False)
+    np.testing.assert_allclose(tiny_data.views[2], scene.views, atol=1e-6)
+    np.testing.assert_allclose(tiny_data.demixed[2], scene.demixed, atol=1e-6)
+    low, high = manifest["recipe"]["brightness"]
+    peaks = tiny_data.objects.reshape(4, -1).max(1)
+    assert np.all((peaks >= low - 1e-6) & (peaks <= high + 1e-6))
+
+
+def test_interrupted_generation_resumes_to_the_same_data(tiny_data, tmp_path):
+    system = tiny_data.system
+    recipe = RECIPE
+    sim = tiny_simulator(system)
+    calls = {"n": 0}
+    original = sim.simulate
+
+    def failing(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+        return original(*args, **kwargs)
+
+    sim.simulate = failing
+    with pytest.raises(KeyboardInterrupt):
+        generate_dataset(tmp_path, system, recipe, sim, progress=False)
+    assert json.loads((tmp_path / "manifest.json").read_text())["count"] == 2
+    with pytest.raises(ValueError, match="only 2 of 4"):
+        TrainingData(tmp_path)
+    assert len(TrainingData(tmp_path, allow_partial=True)) == 2
+    sim.simulate = original
+    resumed = generate_dataset(tmp_path, system, recipe, sim, progress=False)
+    for name in ("views", "demixed", "objects"):
+        np.testing.assert_array_equal(getattr(resumed, name), getattr(tiny_data, name))
+    with pytest.raises(ValueError, match="another system or recipe"):
+        generate_dataset(tmp_path, system, DataRecipe(frames=5, seed=3), sim, progress=False)
+
+
+# ----------------------------------------------------------------------------- sampler
+def test_view_patches_of_the_presets_are_disjoint(tiny_system):
+    for name in ("cm2-mini", "cm2-v2"):
+        system = SystemConfig.preset(name)
+        check_disjoint_view_patches(system, system.patch_size)
+    pitch = tiny_system.chief_rays[1][1] - tiny_system.chief_rays[0][1]
+    check_disjoint_view_patches(tiny_system, pitch)
+    with pytest.raises(ValueError, match="lenses 0 and 1"):
+        check_disjoint_view_patches(tiny_system, pitch + 1)
+
+
+def test_patches_line_up_with_the_stored_frames(tiny_data):
+    system = tiny_data.system
+    data = PatchDataset(tiny_data, tiny_data.train_frames, noise=False)
+    p = system.patch_size
+    per_frame = len(data.origins)
+    assert len(data) == per_frame * len(tiny_data.train_frames)
+    starts = sorted({int(r) for r, _ in data.origins})
+    assert starts[1] - starts[0] == p // 2 and starts[-1] == system.sub_view_size - p
+    for index in (0, per_frame + 7, len(data) - 1):
+        item = data[index]
+        frame = tiny_data.train_frames[index // per_frame]
+        r, c = item["origin"].tolist()
+        np.testing.assert_array_equal(item["views"], tiny_data.views[frame, :, r:r + p, c:c + p])
+        np.testing.assert_array_equal(item["demixed"],
+                                      tiny_data.demixed[frame, :, r:r + p, c:c + p])
+        np.testing.assert_array_equal(item["object"][0], tiny_data.objects[frame, r:r + p, c:c + p])
+
+
+def _edge_patch(data: PatchDataset) -> int:
+    """Index of a patch whose views straddle the sensor edge."""
+    for index in range(len(data.origins)):
+        r, c = data.origins[index]
+        inside = data.sensor_mask[:, r:r + data.patch, c:c + data.patch]
+        if inside.any() and not inside.all():
+            return index
+    raise AssertionError("no patch straddles the sensor edge")
+
+
+def test_noise_is_fresh_and_only_on_the_sensor(tiny_data):
+    system = tiny_data.system
+    train = PatchDataset(tiny_data, tiny_data.train_frames, fixed_noise=False, seed=1)
+    clean = PatchDataset(tiny_data, tiny_data.train_frames, noise=False)
+    index = _edge_patch(train)
+    r, c = train.origins[index]
+    window = torch.zeros(system.padded_shape)
+    window[system.sensor_window] = 1
+    inside = extract_sub_views(window, system)[:, r:r + train.patch, c:c + train.patch] > 0
+    first, second = train[index]["views"], train[index]["views"]
+    assert not torch.equal(first, second)  # a fresh draw on every access
+    for draw in (first, second):
+        assert torch.all(draw[~inside] == 0)  # zero padding stays noiseless
+        residual = (draw - clean[index]["views"])[inside]
+        assert residual.abs().max() > 0
+        assert residual.std() < 0.05  # sensor noise, not garbage
+    # an explicit noise seed reproduces a draw; fixed-noise (validation) patches repeat
+    assert torch.equal(train[(index, 7)]["views"], train[(index, 7)]["views"])
+    val = PatchDataset(tiny_data, tiny_data.val_frames, fixed_noise=True, seed=1)
+    assert torch.equal(val[3]["views"], val[3]["views"])
+    assert not torch.equal(val[3]["views"], val[4]["views"])
+
+
+def test_epoch_sampler_is_seeded_and_splits_ranks():
+    sampler = EpochSampler(30, 20, seed=4)
+    sampler.set_epoch(2)
+    draws = list(sampler)
+    assert draws == list(sampler) and len({i for i, _ in draws}) == 20
+    sampler.set_epoch(3)
+    assert list(sampler) != draws
+    ranks = [EpochSampler(30, 20, seed=4, rank=k, world_size=2) for k in range(2)]
+    for rank in ranks:
+        rank.set_epoch(2)
+    assert sorted(list(ranks[0]) + list(ranks[1])) == sorted(draws)
+    long = EpochSampler(5, 12, seed=0)
+    assert len(list(long)) == 12 and len({i for i, _ in long}) == 5
+
+
+def test_epoch_sampler_runs_share_their_origin():
+    frames, origins, group = 10, 6, 4
+    size = frames * origins
+    sampler = EpochSampler(size, 72, seed=1, group=group, origins=origins)
+    draws = [i for i, _ in sampler]
+    assert set(draws) == set(range(size))  # 10 frames fill 3 runs of 4: two come twice
+    runs = [draws[k : k + group] for k in range(0, len(draws), group)]
+    assert all(len({i % origins for i in run}) == 1 for run in runs)
+    assert all(len({i // origins for i in run}) == group for run in runs)
+    ranks = [EpochSampler(size, 40, seed=1, rank=k, world_size=2, group=group, origins=origins)
+             for k in range(2)]
+    seen = [list(rank) for rank in ranks]
+    single = EpochSampler(size, 40, seed=1, group=group, origins=origins)
+    assert len(seen[0]) == len(seen[1]) == 20  # whole runs, alternating between the ranks
+    assert sorted(seen[0] + seen[1]) == sorted(single)
+    with pytest.raises(ValueError, match="origins"):
+        EpochSampler(size, 8, group=2, origins=7)
+
+
+# -------------------------------------------------------------------------------- loss
+@pytest.mark.parametrize("value", [0.0, 1.0])
+def test_loss_is_finite_on_flat_patches(value):
+    target = torch.full((2, 9, 16, 16), value)
+    prediction = torch.full((2, 9, 16, 16), value, requires_grad=True)
+    loss = stage_loss(prediction, target)
+    loss.backward()
+    assert torch.isfinite(loss) and abs(float(loss.detach())) < 1e-6
+    assert torch.isfinite(prediction.grad).all()
+    opposite = stage_loss(torch.full_like(target, 1 - value), target)
+    assert torch.isfinite(opposite) and float(opposite) > 0.9  # MSE 1 plus 1 - SSIM
+
+
+def test_joint_loss_sums_both_stages():
+    gen = torch.Generator().manual_seed(0)
+    d, dt = torch.rand(2, 9, 16, 16, generator=gen), torch.rand(2, 9, 16, 16, generator=gen)
+    r, rt = torch.rand(2, 1, 16, 16, generator=gen), torch.rand(2, 1, 16, 16, generator=gen)
+    total, parts = svcode_loss(d, r, dt, rt)
+    assert float(total) == pytest.approx(parts["demix"] + parts["recon"], rel=1e-6)
+    assert parts["demix"] == pytest.approx(float(stage_loss(d, dt)))
+    with pytest.raises(ValueError, match="at least 11"):
+        stage_loss(torch.rand(1, 1, 8, 8), torch.rand(1, 1, 8, 8))
+
+
+# ------------------------------------------------------------------------------ trainer
+def _trainer(data, out, **changes) -> Trainer:
+    config = TrainConfig(**{"epochs": 2, "batch_size": 2, "lr": 1e-3, "patches_per_epoch": 4,
+                            "val_patches": 4, **changes})
+    return Trainer(data, out, TINY_MODEL, config, progress=False)
+
+
+def test_one_step_lowers_the_loss_on_a_fixed_batch(tiny_data, tmp_path):
+    trainer = _trainer(tiny_data, tmp_path, lr=1e-3)
+    items = [trainer.val_set[i] for i in range(2)]  # fixed noise
+    batch = {k: torch.stack([it[k] for it in items]) for k in ("views", "demixed", "object",
+                                                              "origin")}
+
+    def loss() -> float:
+        with torch.no_grad():
+            d, r = trainer.model(batch["views"], batch["origin"], tiny_data.system.sub_view_size)
+            return float(svcode_loss(d, r, batch["demixed"], batch["object"])[0])
+
+    before = loss()
+    step = trainer.train_step(batch)
+    assert step["loss"] == pytest.approx(before, rel=1e-5)
+    assert loss() < before
+
+
+def test_resume_continues_exactly(tiny_data, tmp_path, monkeypatch):
+    reference = _trainer(tiny_data, tmp_path / "a")
+    history = reference.fit()
+    assert [r["epoch"] for r in history] == [1, 2]
+    run = tmp_path / "b"
+    interrupted = _trainer(tiny_data, run)
+    original = Trainer.train_epoch
+
+    def stop_in_second_epoch(self, epoch):
+        if epoch == 1:
+            raise KeyboardInterrupt
+        return original(self, epoch)
+
+    monkeypatch.setattr(Trainer, "train_epoch", stop_in_second_epoch)
+    with pytest.raises(KeyboardInterrupt):
+        interrupted.fit()
+    monkeypatch.setattr(Trainer, "train_epoch", original)
+    torch.manual_seed(123)  # the global RNG state is restored from the checkpoint
+    resumed = _trainer(tiny_data, run)
+    assert resumed.fit(resume=True)[-1]["epoch"] == 2
+    assert resumed.step_losses == reference.step_losses  # identical next steps
+    for name, value in reference.model.state_dict().items():
+        assert torch.equal(value, resumed.model.state_dict()[name]), name
+    assert resumed.optimizer.state_dict()["state"].keys() == \
+        reference.optimizer.state_dict()["state"].keys()
+    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == [
+        "epoch-0002.pt", "epoch-0002.safetensors", "latest.json"]
+    for name in ("log.csv", "log.json", "loss.png", "best.safetensors"):
+        assert (run / name).stat().st_size > 0
+    model, system = load_model(run / "best.safetensors", tiny_data.system)
+    assert model.model_config == TINY_MODEL
+    with pytest.raises(ValueError, match="differs in"):
+        _trainer(tiny_data, run, lr=5e-4).fit(resume=True)
+    with pytest.raises(FileNotFoundError, match="no checkpoint"):
+        _trainer(tiny_data, tmp_path / "c").fit(resume=True)
+
+
+def test_too_few_patches_for_a_batch(tiny_data, tmp_path):
+    with pytest.raises(ValueError, match="make no batch"):
+        _trainer(tiny_data, tmp_path, patches_per_epoch=1, batch_size=2)
+
+
+def test_learning_rate_warms_up_then_anneals(tiny_data, tmp_path):
+    trainer = _trainer(tiny_data, tmp_path, lr=1e-3, warmup_steps=2, min_lr_ratio=0.1)
+    schedule = trainer.scheduler.lr_lambdas[0]
+    factors = [schedule(t) for t in range(trainer.config.epochs * trainer.steps_per_epoch)]
+    assert factors[:2] == [0.5, 1.0]  # linear warm-up to the peak
+    assert all(a >= b for a, b in zip(factors[1:], factors[2:], strict=False))
+    assert schedule(10**6) == pytest.approx(0.1)  # the floor
+    assert trainer.optimizer.param_groups[0]["lr"] == pytest.approx(5e-4)

@@ -1,0 +1,43 @@
+"""``svcode dataset`` and ``svcode train`` end to end on a tiny system."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+import svcode_core.cli as cli
+from svcode_core.network import load_model
+from svcode_core.training import TrainingData
+
+
+@pytest.fixture
+def main(monkeypatch):
+    monkeypatch.setattr(cli, "COMMANDS", (*cli.COMMANDS, "dataset", "train"))
+    return cli.main
+
+
+def test_dataset_then_train(main, tiny_system, tmp_path, capsys):
+    system_file = tiny_system.save(tmp_path / "tiny.json")
+    data = tmp_path / "data"
+    assert main(["dataset", "--system", str(system_file), "--frames", "3", "--out", str(data),
+                 "--seed", "5", "--val-fraction", "0.3", "--no-progress"]) == 0
+    assert "3 frames of tiny" in capsys.readouterr().out
+    assert len(TrainingData(data).val_frames) == 1
+    model_file = tmp_path / "model.json"
+    model_file.write_text(json.dumps({
+        "width": 4, "view_width": 1, "demix_enc_blocks": [1], "demix_dec_blocks": [1],
+        "recon_enc_blocks": [1], "recon_dec_blocks": [1], "mlp_hidden": 8, "pe_bands": 2}))
+    run = tmp_path / "run"
+    args = ["train", "--data", str(data), "--out", str(run), "--epochs", "1",
+            "--model-config", str(model_file), "--ablation", "no-pe", "--batch-size", "2",
+            "--patches-per-epoch", "2", "--val-patches", "2", "--device", "cpu",
+            "--no-progress"]
+    assert main(args) == 0
+    assert "validation reconstruction PSNR" in capsys.readouterr().out
+    model, system = load_model(run / "best.safetensors", tiny_system)
+    assert model.model_config.positional_encoding is False
+    assert main([*args, "--resume"]) == 0  # nothing left to do, but it loads
+    # a preset that is not the dataset's system is refused
+    assert main([*args, "--preset", "cm2-mini"]) == 2
+    assert "differs from 'cm2-mini'" in capsys.readouterr().err
