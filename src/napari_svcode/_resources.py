@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import functools
-from importlib import resources
 from pathlib import Path
 
 import torch
 
 from svcode_core.config import SystemConfig
 from svcode_core.network import load_model
+from svcode_core.pretrained import bundled_weights as bundled_model
 from svcode_core.simulate import Simulator
 
 __all__ = ["NO_BUNDLED_MODEL", "available_devices", "bundled_model", "cached_model", "simulator"]
@@ -19,22 +19,6 @@ __all__ = ["NO_BUNDLED_MODEL", "available_devices", "bundled_model", "cached_mod
 def simulator(system: SystemConfig) -> Simulator:
     """The :class:`~svcode_core.simulate.Simulator` of ``system`` (PSFs built once)."""
     return Simulator(system)
-
-
-def bundled_model(system_name: str | None = None) -> Path | None:
-    """A model file shipped in ``svcode_core/weights`` for ``system_name``, if installed.
-
-    Without a name, the first bundled model (alphabetically) is returned.
-    """
-    folder = resources.files("svcode_core").joinpath("weights")
-    if not folder.is_dir():
-        return None
-    files = sorted(
-        Path(str(entry)) for entry in folder.iterdir() if entry.name.endswith(".safetensors")
-    )
-    if system_name is not None:
-        files = [path for path in files if path.stem == system_name]
-    return files[0] if files else None
 
 
 NO_BUNDLED_MODEL = (

@@ -227,6 +227,21 @@ class Reconstructor:
         model, system = load_model(path, system=system, device=options.get("device", "cpu"))
         return cls(model, system, **options)
 
+    @classmethod
+    def pretrained(cls, system: SystemConfig | str = "cm2-mini", **options: Any) -> Reconstructor:
+        """The model bundled with the package for ``system`` (a configuration or a name).
+
+        Raises
+        ------
+        FileNotFoundError
+            If no model is bundled for that system.
+        """
+        from .pretrained import require_bundled_weights
+
+        path = require_bundled_weights(system)
+        return cls.from_weights(path, system if isinstance(system, SystemConfig) else None,
+                                **options)
+
     # ------------------------------------------------------------------ input
     def _check_input(self, frames: Any) -> np.ndarray:
         """The input as a ``(T, H, W)`` array (a view where possible), validated for shape."""

@@ -10,7 +10,7 @@ import argparse
 import importlib
 import sys
 
-COMMANDS = ("simulate", "reconstruct", "demo")
+COMMANDS = ("simulate", "reconstruct", "demo", "dataset", "train", "bench")
 
 
 def build_parser() -> argparse.ArgumentParser:

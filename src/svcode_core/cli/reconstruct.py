@@ -6,12 +6,15 @@ import argparse
 import time
 from pathlib import Path
 
+from ..baselines import METHODS as BASELINES
+from ..baselines import BaselineSpec, add_method_arguments, baseline_options
 from ..config import load_system
 from ..parallel import ReconstructorSpec
+from ..pretrained import require_bundled_weights
 from ..reconstruct import PRECISIONS
 from ..stream import FrameReader, reconstruct_file
 
-METHODS = ("svcode",)
+METHODS = ("svcode", *BASELINES)
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -32,19 +35,27 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--method",
         default="svcode",
         choices=METHODS,
-        help="reconstruction method (default: svcode)",
+        help="svcode (the network), admm (LSV-ADMM with TV), wiener or rl (shift-invariant "
+        "Wiener / Richardson-Lucy per view, fused); default: svcode",
     )
     parser.add_argument(
         "--system",
         help="system JSON or preset name (default: the one stored in the "
         "input TIFF, else system.json beside it)",
     )
-    parser.add_argument("--weights", type=Path, help="trained SV-CoDe model")
+    parser.add_argument(
+        "--weights", type=Path, help="trained SV-CoDe model (default: the bundled model)"
+    )
     parser.add_argument(
         "--views", type=Path, metavar="VIEWS.tif", help="also write the nine demixed views"
     )
     parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or mps")
-    parser.add_argument("--precision", default="fp32", choices=sorted(PRECISIONS))
+    parser.add_argument(
+        "--precision",
+        default="fp32",
+        choices=sorted({*PRECISIONS, "fp64"}),
+        help="svcode: fp32, bf16, fp16; baselines: fp32, fp64 (default: fp32)",
+    )
     parser.add_argument("--tile", type=int, help="tile size P (default: the system's patch size)")
     parser.add_argument("--stride", type=int, help="tile stride (default: P/2)")
     parser.add_argument("--batch-size", type=int, default=8, help="tiles per model call")
@@ -61,6 +72,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--scheduler", metavar="ADDRESS", help="use an existing dask cluster, e.g. tcp://host:8786"
     )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_method_arguments(parser)
     parser.set_defaults(func=run)
 
 
@@ -76,15 +88,22 @@ def _system(args: argparse.Namespace):
         return reader.system
 
 
-def run(args: argparse.Namespace) -> int:
-    """Reconstruct ``args.input`` into ``args.out``; print a one-line summary."""
-    if args.weights is None:
-        raise ValueError("no bundled model yet; pass --weights FILE")
-    if not args.weights.is_file():
+def _spec(args: argparse.Namespace, system) -> ReconstructorSpec | BaselineSpec:
+    """The picklable reconstructor recipe of ``args.method``."""
+    if args.method != "svcode":
+        return BaselineSpec(args.method, system, {
+            "device": args.device, "precision": args.precision, **baseline_options(args)
+        })
+    if args.precision not in PRECISIONS:
+        raise ValueError(f"--precision {args.precision} applies to the baselines only; "
+                         f"svcode takes {', '.join(sorted(PRECISIONS))}")
+    unused = baseline_options(argparse.Namespace(**{**vars(args), "method": "admm"}))
+    if unused:
+        raise ValueError(f"--{next(iter(unused)).replace('_', '-')} applies to the "
+                         "model-based baselines, not to --method svcode")
+    if args.weights is not None and not args.weights.is_file():
         raise FileNotFoundError(f"weights not found: {args.weights}")
-    if args.workers < 0:
-        raise ValueError(f"--workers must be >= 0, got {args.workers}")
-    system = _system(args)
+    weights = args.weights if args.weights is not None else require_bundled_weights(system)
     options = {
         "device": args.device,
         "precision": args.precision,
@@ -93,7 +112,15 @@ def run(args: argparse.Namespace) -> int:
         "batch_size": args.batch_size,
         "skip_empty": not args.no_skip,
     }
-    spec = ReconstructorSpec(str(args.weights), system, options)
+    return ReconstructorSpec(str(weights), system, options)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Reconstruct ``args.input`` into ``args.out``; print a one-line summary."""
+    if args.workers < 0:
+        raise ValueError(f"--workers must be >= 0, got {args.workers}")
+    system = _system(args)
+    spec = _spec(args, system)
     start = time.perf_counter()
     summary = reconstruct_file(
         args.input,
