@@ -33,3 +33,15 @@ def test_errors(tmp_path, mini_system):
     assert not (tmp_path / "x.tif").exists()
     write_json_atomic(tmp_path / "p.json", {"done": [1, 2]})
     assert (tmp_path / "p.json").read_text().strip().startswith("{")
+
+
+@pytest.mark.parametrize("shape, axes", [((6, 5), "YX"), ((3, 6, 5), "TYX")])
+def test_ome_tiff_round_trip_keeps_the_system(tiny_system, tmp_path, shape, axes):
+    data = np.arange(np.prod(shape), dtype=np.float32).reshape(shape)
+    path = write_tiff(tmp_path / "rec.ome.tif", data, tiny_system, kind="reconstruction",
+                      extra={"model": "m"})
+    with tifffile.TiffFile(path) as tif:
+        assert tif.is_ome and tif.series[0].axes == axes
+    back, system, meta = read_tiff(path)
+    np.testing.assert_array_equal(back, data)
+    assert system == tiny_system and meta == {"kind": "reconstruction", "model": "m"}

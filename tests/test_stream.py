@@ -223,7 +223,21 @@ def test_cli_reconstructs_a_stack(tiny_system, stack, tmp_path, monkeypatch, cap
 
 
 def test_cli_without_weights_says_so(tiny_system, stack, tmp_path):
-    with pytest.raises(ValueError, match="no bundled model yet; pass --weights"):
+    with pytest.raises(FileNotFoundError, match="no bundled SV-CoDe model for system 'tiny'"):
         _cli([tmp_path / "meas.tif", "--out", tmp_path / "out.tif"])
     with pytest.raises(FileNotFoundError, match="weights not found"):
         _cli([tmp_path / "meas.tif", "--out", tmp_path / "out.tif", "--weights", tmp_path / "x"])
+
+
+def test_cli_runs_a_baseline_with_its_options(tiny_system, stack, tmp_path, capsys):
+    out = tmp_path / "wiener.tif"
+    status = _cli([tmp_path / "meas.tif", "--out", out, "--method", "wiener",
+                   "--wiener-balance", "0.05", "--quiet"])
+    assert status == 0 and "reconstructed 20 frame(s)" in capsys.readouterr().out
+    recon, system, meta = read_tiff(out)
+    assert recon.shape == (20, tiny_system.sub_view_size, tiny_system.sub_view_size)
+    assert np.isfinite(recon).all() and meta["method"] == "wiener" and meta["balance"] == 0.05
+    with pytest.raises(ValueError, match="--tv-weight does not apply to --method wiener"):
+        _cli([tmp_path / "meas.tif", "--out", out, "--method", "wiener", "--tv-weight", "1"])
+    with pytest.raises(ValueError, match="--rho applies to the model-based baselines"):
+        _cli([tmp_path / "meas.tif", "--out", out, "--rho", "1"])

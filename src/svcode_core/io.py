@@ -21,6 +21,14 @@ from .config import SystemConfig
 __all__ = ["read_tiff", "system_beside", "tiff_metadata", "write_json_atomic", "write_tiff"]
 
 METADATA_KEY = "svcode"
+OME_METADATA_TAG = 65000
+"""Private TIFF tag holding the ``svcode`` JSON in OME-TIFF files (whose image description
+is the OME-XML)."""
+
+
+def is_ome_path(path: str | Path) -> bool:
+    """Whether ``path`` names an OME-TIFF (``.ome.tif`` or ``.ome.tiff``)."""
+    return Path(path).name.lower().endswith((".ome.tif", ".ome.tiff"))
 
 
 def write_tiff(
@@ -38,7 +46,9 @@ def write_tiff(
     Parameters
     ----------
     path : str or Path
-        Destination ``.tif`` file; parent folders are created.
+        Destination ``.tif`` file; parent folders are created. A name ending in
+        ``.ome.tif`` or ``.ome.tiff`` gives an OME-TIFF (axes ``YX``, ``CYX`` for nine
+        views, ``TYX`` for a stack) with the metadata in private tag 65000.
     array : numpy.ndarray
         Image data; stored as float32.
     system : SystemConfig or None
@@ -62,10 +72,18 @@ def write_tiff(
         meta.update(extra)
     json.dumps(meta)  # fail here, before writing, on non-serialisable metadata
     partial = path.with_name(path.name + ".partial")
-    tifffile.imwrite(
-        partial, np.asarray(array, dtype=np.float32), photometric="minisblack",
-        metadata={METADATA_KEY: meta},
-    )
+    data = np.asarray(array, dtype=np.float32)
+    if is_ome_path(path):
+        axes = {2: "YX", 3: "CYX" if kind in ("views", "demixed") else "TYX", 4: "TCYX"}
+        if data.ndim not in axes:
+            raise ValueError(f"an OME-TIFF takes 2 to 4 dimensions, got shape {data.shape}")
+        tifffile.imwrite(
+            partial, data, ome=True, photometric="minisblack",
+            metadata={"axes": axes[data.ndim]},
+            extratags=[(OME_METADATA_TAG, "s", 0, json.dumps({METADATA_KEY: meta}), True)],
+        )
+    else:
+        tifffile.imwrite(partial, data, photometric="minisblack", metadata={METADATA_KEY: meta})
     os.replace(partial, path)
     return path
 
@@ -109,6 +127,9 @@ def tiff_metadata(tif: tifffile.TiffFile) -> tuple[SystemConfig | None, dict[str
     """
     shaped = tif.shaped_metadata or ({},)
     meta = dict((shaped[0] or {}).get(METADATA_KEY, {}))
+    tag = tif.pages[0].tags.get(OME_METADATA_TAG) if tif.pages else None
+    if not meta and tag is not None:
+        meta = dict(json.loads(tag.value).get(METADATA_KEY, {}))
     system_dict = meta.pop("system", None)
     if system_dict:
         return SystemConfig.from_dict(system_dict), meta

@@ -55,6 +55,7 @@ __all__ = [
     "resolve_device",
 ]
 
+DEFAULT_MASK_CACHE_BYTES = 1 << 28
 PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}
 
 
@@ -169,6 +170,11 @@ class Reconstructor:
         Skip tiles without signal (see :mod:`svcode_core.tiling`).
     skip_factor : float
         ``k`` of the skip threshold ``dark_offset + k · noise_floor``.
+    mask_cache_bytes : int
+        Memory for frozen coordinate masks (:meth:`SVCoDe.cache_masks`), reused by every
+        tile and frame; 0 recomputes them for each batch. The default (256 MiB) holds most
+        of the ``cm2-mini`` model's masks; :meth:`SVCoDe.mask_field_bytes` tells what all
+        of them need.
 
     Examples
     --------
@@ -189,6 +195,7 @@ class Reconstructor:
         batch_size: int = 8,
         skip_empty: bool = True,
         skip_factor: float = DEFAULT_SKIP_FACTOR,
+        mask_cache_bytes: int = DEFAULT_MASK_CACHE_BYTES,
     ) -> None:
         if not isinstance(system, SystemConfig):
             raise TypeError(f"system must be a SystemConfig, got {type(system).__name__}")
@@ -213,6 +220,11 @@ class Reconstructor:
         self.skip_empty = skip_empty
         self.skip_threshold = system.noise.dark_offset + skip_factor * noise_floor(system.noise)
         self.model = model.to(self.device).eval()
+        if not isinstance(mask_cache_bytes, int) or mask_cache_bytes < 0:
+            raise ValueError(f"mask_cache_bytes must be a non-negative integer, "
+                             f"got {mask_cache_bytes!r}")
+        if hasattr(self.model, "cache_masks"):
+            self.model.cache_masks(enabled=mask_cache_bytes > 0, max_bytes=mask_cache_bytes)
 
     @classmethod
     def from_weights(

@@ -62,6 +62,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--no-skip", action="store_true", help="run every tile, also those without signal"
     )
+    parser.add_argument("--mask-cache", type=int, default=256, metavar="MIB",
+                        help="memory for frozen coordinate masks, 0 to recompute them "
+                        "(default: 256)")
     parser.add_argument(
         "--workers",
         type=int,
@@ -111,6 +114,7 @@ def _spec(args: argparse.Namespace, system) -> ReconstructorSpec | BaselineSpec:
         "stride": args.stride,
         "batch_size": args.batch_size,
         "skip_empty": not args.no_skip,
+        "mask_cache_bytes": args.mask_cache << 20,
     }
     return ReconstructorSpec(str(weights), system, options)
 
