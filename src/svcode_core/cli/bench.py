@@ -54,9 +54,9 @@ from ..cm2 import CM2Operator
 from ..config import SystemConfig, load_system
 from ..geometry import pad_sensor_frame
 from ..metrics import CENTRE_RADIUS, RING_RADIUS, image_quality
+from ..network import read_model_metadata
 from ..optics import system_psfs
 from ..phantoms import make_object
-from ..network import read_model_metadata
 from ..pretrained import bundled_weights
 from ..simulate import Simulator
 
@@ -454,8 +454,10 @@ def run(args: argparse.Namespace) -> int:
         if path is not None and not path.is_file():
             raise FileNotFoundError(f"weights not found: {path}")
     torch.set_num_threads(args.threads)
-    report = run_benchmark(load_system(args.system), args.quick, args.weights,
-                           methods=tuple(args.methods), ablations=tuple(args.ablations))  # fmt: skip
+    report = run_benchmark(
+        load_system(args.system), args.quick, args.weights,
+        methods=tuple(args.methods), ablations=tuple(args.ablations),
+    )  # fmt: skip
     args.out.mkdir(parents=True, exist_ok=True)
     stem = args.out / "work_precision"
     Path(f"{stem}.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
