@@ -1,0 +1,156 @@
+"""Learned baselines: MultiWienerNet and SV-FourierNet (filters, geometry, training, files)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from skimage.restoration import wiener
+
+from svcode_core.baselines.deconv import unit_centre_psfs
+from svcode_core.cm2 import CM2Operator
+from svcode_core.geometry import assemble_frame, extract_sub_views, place_sub_views
+from svcode_core.learned_baselines import (
+    FourierNetConfig,
+    MultiWienerConfig,
+    MultiWienerNet,
+    SVFourierNet,
+    lens_offsets,
+)
+from svcode_core.network import load_model, read_model_metadata, save_model
+from svcode_core.training import stage_loss
+
+HEAD = {"width": 4, "enc_blocks": (1,), "middle_blocks": 1, "dec_blocks": (1,)}
+BUILDERS = {
+    "multiwiener": lambda op: MultiWienerNet.from_operator(op, MultiWienerConfig(rank=3, **HEAD)),
+    "fouriernet": lambda op: SVFourierNet.from_operator(op, FourierNetConfig(**HEAD)),
+}
+
+
+@pytest.fixture
+def operator(tiny_system) -> CM2Operator:
+    return CM2Operator.from_system(tiny_system)
+
+
+def _scene(operator: CM2Operator, batch: int = 2) -> tuple[torch.Tensor, torch.Tensor]:
+    """Padded frames ``(B, H_pad, W_pad)`` and objects ``(B, 1, S, S)`` of a few squares."""
+    size = operator.system.sub_view_size
+    generator = torch.Generator().manual_seed(0)
+    objects = torch.zeros(batch, 1, size, size)
+    for b in range(batch):
+        for r, c in torch.randint(4, size - 8, (6, 2), generator=generator).tolist():
+            objects[b, 0, r : r + 4, c : c + 4] = 0.3 + 0.7 * torch.rand(1, generator=generator)
+    return operator.forward(objects[:, 0]), objects
+
+
+@pytest.mark.parametrize("method", sorted(BUILDERS))
+def test_shapes_and_frame_check(method, operator):
+    model = BUILDERS[method](operator)
+    frames, objects = _scene(operator, batch=2)
+    assert model(frames).shape == objects.shape
+    with pytest.raises(ValueError, match="padded sensor frames"):
+        model(frames[:, :-1])
+
+
+def test_fouriernet_init_is_the_wiener_filter_of_each_view(operator):
+    """Filter ℓ equals scikit-image's Wiener deconvolution (identity regulariser) with the
+    lens's unit-sum centre PSF, shifted from the chief ray to the reference point."""
+    model = BUILDERS["fouriernet"](operator).eval()
+    frames, _ = _scene(operator, batch=1)
+    with torch.no_grad():
+        filtered = model.bank(frames)[0].double().numpy()
+    balance = model.model_config.balance
+    for lens, (psf, offset) in enumerate(
+        zip(unit_centre_psfs(operator).double().numpy(), lens_offsets(operator.system), strict=True)
+    ):
+        expected = wiener(frames[0].double().numpy(), psf, balance, reg=np.ones((1, 1)), clip=False)
+        expected = np.roll(expected, shift=tuple(-offset), axis=(0, 1))
+        np.testing.assert_allclose(filtered[lens], expected, atol=2e-5 * np.abs(expected).max())
+
+
+def test_multiwiener_bank_is_a_wiener_deconvolution(operator):
+    """Each filter is scikit-image's Wiener deconvolution with its frame-sized PSF and λ."""
+    model = BUILDERS["multiwiener"](operator).eval()
+    frames, _ = _scene(operator, batch=1)
+    bank = model.bank
+    with torch.no_grad():
+        filtered = bank(frames)[0].double().numpy()
+        psfs = bank.psfs.double().numpy()
+        lambdas = bank.log_regularisation.exp().double().numpy()
+    peak = np.abs(np.fft.rfft2(psfs)).reshape(len(psfs), -1).max(1) ** 2
+    np.testing.assert_allclose(lambdas, model.model_config.balance * peak, rtol=1e-5)
+    shape = np.array(frames.shape[-2:])
+    for k, (psf, lam) in enumerate(zip(psfs, lambdas, strict=True)):
+        centred = np.roll(psf, shift=tuple(shape // 2), axis=(0, 1))  # skimage: centre at N//2
+        expected = wiener(frames[0].double().numpy(), centred, lam, reg=np.ones((1, 1)), clip=False)
+        np.testing.assert_allclose(filtered[k], expected, atol=1e-4 * np.abs(expected).max())
+
+
+def test_initial_filters_bring_a_point_back_to_its_place(operator):
+    """A point seen by one lens, deconvolved by that lens's filter, peaks at the point; the
+    first MultiWiener filter does the same for the full nine-spot frame."""
+    system = operator.system
+    size, point = system.sub_view_size, (17, 29)
+    obj = torch.zeros(size, size)
+    obj[point] = 1.0
+    blur = operator.lens_blur(obj)  # (9, S + 2m, S + 2m)
+    fourier = BUILDERS["fouriernet"](operator)
+    with torch.no_grad():
+        for lens in range(9):
+            alone = torch.zeros_like(blur)
+            alone[lens] = blur[lens]
+            frame = place_sub_views(alone, system, operator.margin)[None]
+            window = fourier.filtered(frame)[0, lens]
+            assert divmod(int(window.argmax()), size) == point, lens
+        window = BUILDERS["multiwiener"](operator).filtered(operator.forward(obj)[None])[0, 0]
+    assert divmod(int(window.argmax()), size) == point
+
+
+@pytest.mark.parametrize("method", sorted(BUILDERS))
+def test_one_step_lowers_the_loss(method, operator):
+    torch.manual_seed(0)
+    model = BUILDERS[method](operator).train()
+    frames, objects = _scene(operator, batch=2)
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
+    before = stage_loss(model(frames), objects)
+    optimizer.zero_grad()
+    before.backward()
+    assert all(p.grad is not None for p in model.parameters())
+    optimizer.step()
+    with torch.no_grad():
+        after = stage_loss(model(frames), objects)
+    assert float(after) < float(before.detach())
+
+
+@pytest.mark.parametrize("method", sorted(BUILDERS))
+def test_zero_frame_gives_a_finite_non_negative_image(method, operator):
+    model = BUILDERS[method](operator).eval()
+    frames = torch.zeros(1, *operator.system.padded_shape)
+    with torch.no_grad():
+        out = model(frames)
+    assert torch.isfinite(out).all() and (out >= 0).all()
+
+
+@pytest.mark.parametrize("method", sorted(BUILDERS))
+def test_save_load_round_trip_is_bit_exact(method, operator, tmp_path):
+    model = BUILDERS[method](operator).eval()
+    with torch.no_grad():  # move away from the initialisation
+        for param in model.parameters():
+            param.add_(0.01 * torch.randn_like(param))
+    path = save_model(tmp_path / "m.safetensors", model, operator.system, {"note": method})
+    meta = read_model_metadata(path)
+    assert meta["architecture"] == type(model).__name__
+    assert meta["model_config"] == model.model_config and meta["extra"] == {"note": method}
+    loaded, system = load_model(path, operator.system)
+    assert type(loaded) is type(model) and system == operator.system
+    for key, value in model.state_dict().items():
+        assert torch.equal(loaded.state_dict()[key], value), key
+    frames, _ = _scene(operator, batch=1)
+    with torch.no_grad():
+        assert torch.equal(loaded(frames), model(frames))
+
+
+def test_assemble_frame_inverts_the_sub_view_cut(tiny_system):
+    frame = torch.rand(2, *tiny_system.padded_shape)
+    views = extract_sub_views(frame, tiny_system)
+    torch.testing.assert_close(assemble_frame(views, tiny_system), frame, rtol=1e-6, atol=0)
