@@ -18,7 +18,16 @@ from svcode_core.learned_baselines import (
     lens_offsets,
 )
 from svcode_core.network import load_model, read_model_metadata, save_model
-from svcode_core.training import stage_loss
+from svcode_core.simulate import Simulator
+from svcode_core.training import (
+    DataRecipe,
+    FrameDataset,
+    TrainConfig,
+    Trainer,
+    TrainingData,
+    generate_dataset,
+    stage_loss,
+)
 
 HEAD = {"width": 4, "enc_blocks": (1,), "middle_blocks": 1, "dec_blocks": (1,)}
 BUILDERS = {
@@ -30,6 +39,15 @@ BUILDERS = {
 @pytest.fixture
 def operator(tiny_system) -> CM2Operator:
     return CM2Operator.from_system(tiny_system)
+
+
+@pytest.fixture(scope="module")
+def tiny_data(tmp_path_factory) -> TrainingData:
+    from conftest import tiny_system
+
+    recipe = DataRecipe(frames=4, seed=3, val_fraction=0.25, object_kind="beads")
+    out = tmp_path_factory.mktemp("data")
+    return generate_dataset(out, tiny_system.__wrapped__(), recipe, progress=False)
 
 
 def _scene(operator: CM2Operator, batch: int = 2) -> tuple[torch.Tensor, torch.Tensor]:
@@ -154,3 +172,44 @@ def test_assemble_frame_inverts_the_sub_view_cut(tiny_system):
     frame = torch.rand(2, *tiny_system.padded_shape)
     views = extract_sub_views(frame, tiny_system)
     torch.testing.assert_close(assemble_frame(views, tiny_system), frame, rtol=1e-6, atol=0)
+
+
+# ---------------------------------------------------------------------------- training
+def test_frame_dataset_rebuilds_the_simulated_frame(tiny_data):
+    system = tiny_data.system
+    clean = FrameDataset(tiny_data, [1], noise=False)[0]
+    scene = Simulator(system).simulate(np.array(tiny_data.objects[1]), noise=False)
+    sensor = clean["frame"][system.sensor_window].numpy()
+    np.testing.assert_allclose(sensor, scene.measurement, atol=1e-6)
+    assert clean["object"].shape == (1, system.sub_view_size, system.sub_view_size)
+    noisy = FrameDataset(tiny_data, [1], fixed_noise=True, seed=0)
+    first, again = noisy[0]["frame"], noisy[0]["frame"]
+    assert torch.equal(first, again)  # fixed noise: the same draw every time
+    outside = torch.ones(system.padded_shape, dtype=torch.bool)
+    outside[system.sensor_window] = False
+    assert not first[outside].any()  # the padding stays exactly zero
+    assert not torch.equal(first[~outside], clean["frame"][~outside])
+
+
+@pytest.mark.parametrize(
+    ("config", "architecture"),
+    [(MultiWienerConfig(rank=2, **HEAD), "MultiWienerNet"),
+     (FourierNetConfig(**HEAD), "SVFourierNet")],
+)
+def test_trainer_runs_whole_frame_baselines(config, architecture, tiny_data, tmp_path):
+    train = TrainConfig(epochs=2, batch_size=1, lr=1e-3, warmup_steps=1)
+    trainer = Trainer(tiny_data, tmp_path, config, train, progress=False)
+    history = trainer.fit()
+    assert len(trainer.train_set) == len(tiny_data.train_frames)
+    assert [r["epoch"] for r in history] == [1, 2]
+    record = history[-1]
+    assert {"train_recon", "val_recon_psnr", "val_recon_ssim"} <= set(record)
+    assert not any("demix" in key for key in record)
+    assert all(np.isfinite(v) for v in record.values())
+    model, _ = load_model(tmp_path / "best.safetensors", tiny_data.system)
+    assert type(model).__name__ == architecture and model.model_config == config
+    assert read_model_metadata(tmp_path / "best.safetensors")["extra"]["data"]["train_frames"] == 3
+    resumed = Trainer(tiny_data, tmp_path, config, train, progress=False)
+    assert resumed.load_checkpoint() == 2
+    for key, value in trainer.model.state_dict().items():
+        assert torch.equal(resumed.model.state_dict()[key], value), key
