@@ -193,8 +193,10 @@ def test_frame_dataset_rebuilds_the_simulated_frame(tiny_data):
 
 @pytest.mark.parametrize(
     ("config", "architecture"),
-    [(MultiWienerConfig(rank=2, **HEAD), "MultiWienerNet"),
-     (FourierNetConfig(**HEAD), "SVFourierNet")],
+    [
+        (MultiWienerConfig(rank=2, **HEAD), "MultiWienerNet"),
+        (FourierNetConfig(**HEAD), "SVFourierNet"),
+    ],
 )
 def test_trainer_runs_whole_frame_baselines(config, architecture, tiny_data, tmp_path):
     train = TrainConfig(epochs=2, batch_size=1, lr=1e-3, warmup_steps=1)
@@ -213,3 +215,35 @@ def test_trainer_runs_whole_frame_baselines(config, architecture, tiny_data, tmp
     assert resumed.load_checkpoint() == 2
     for key, value in trainer.model.state_dict().items():
         assert torch.equal(resumed.model.state_dict()[key], value), key
+
+
+def test_train_command_trains_a_baseline(tiny_data, tmp_path, capsys):
+    import svcode_core.cli as cli
+
+    config = tmp_path / "fouriernet.json"
+    config.write_text(FourierNetConfig(**HEAD).to_json())
+    run = tmp_path / "run"
+    args = [
+        "train",
+        "--data",
+        str(tiny_data.path),
+        "--out",
+        str(run),
+        "--method",
+        "fouriernet",
+        "--model-config",
+        str(config),
+        "--epochs",
+        "1",
+        "--batch-size",
+        "1",
+        "--device",
+        "cpu",
+        "--no-progress",
+    ]
+    assert cli.main(args) == 0
+    assert "validation reconstruction PSNR" in capsys.readouterr().out
+    model, _ = load_model(run / "best.safetensors", tiny_data.system)
+    assert isinstance(model, SVFourierNet)
+    assert cli.main([*args, "--ablation", "no-pe"]) == 2
+    assert "applies to SV-CoDe" in capsys.readouterr().err
