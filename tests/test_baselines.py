@@ -356,3 +356,21 @@ def test_benchmark_rows_and_outputs(tiny_system, tiny_op, tmp_path):
     assert (tmp_path / "wp.md").read_text().count("| LSV-ADMM |") == 2
     assert (tmp_path / "wp.png").stat().st_size > 0
     assert pareto_front([(1, 10), (2, 5), (3, 20), (0.5, 1)]) == [(0.5, 1), (1, 10), (3, 20)]
+
+
+def test_benchmark_labels_and_scores_an_ablation_model(tiny_system, tiny_op, tmp_path):
+    from svcode_core.cli.bench import Scene, model_label, run_benchmark, svcode_rows
+    from svcode_core.network import ModelConfig, SVCoDe, save_model
+
+    config = ModelConfig(width=4, view_width=2, demix_enc_blocks=(1,), demix_dec_blocks=(1,),
+                         recon_enc_blocks=(1,), recon_dec_blocks=(1,), mlp_hidden=8,
+                         pe_bands=2, coord_gate=False).validate()  # fmt: skip
+    path = save_model(tmp_path / "no-gate.safetensors", SVCoDe(config), tiny_system)
+    assert model_label(path) == "SV-CoDe (no CoordGate)"
+    truth = disc_object(tiny_system.sub_view_size).numpy()
+    scenes = [Scene("disc", truth, tiny_op.measure(torch.from_numpy(truth)).numpy())]
+    (row,) = svcode_rows(path, tiny_system, scenes, all_knobs=False)
+    summary = row.summary()
+    assert summary["method"] == "SV-CoDe (no CoordGate)" and np.isfinite(summary["psnr"])
+    with pytest.raises(ValueError, match="unknown method families"):
+        run_benchmark(tiny_system, methods=("fouriernet",))

@@ -4,20 +4,12 @@ from __future__ import annotations
 
 import json
 
-import pytest
-
-import svcode_core.cli as cli
+from svcode_core.cli import main
 from svcode_core.network import load_model
 from svcode_core.training import TrainingData
 
 
-@pytest.fixture
-def main(monkeypatch):
-    monkeypatch.setattr(cli, "COMMANDS", (*cli.COMMANDS, "dataset", "train"))
-    return cli.main
-
-
-def test_dataset_then_train(main, tiny_system, tmp_path, capsys):
+def test_dataset_then_train(tiny_system, tmp_path, capsys):
     system_file = tiny_system.save(tmp_path / "tiny.json")
     data = tmp_path / "data"
     assert main(["dataset", "--system", str(system_file), "--frames", "3", "--out", str(data),

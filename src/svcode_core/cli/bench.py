@@ -28,7 +28,10 @@ Timing and memory
     under-report). Where the peak cannot be reset (not Linux) the column is empty.
 
 ``--quick`` runs two scenes, ADMM (``K`` = 3) to 50 iterations, one Wiener and one RL
-setting: under two minutes on one core.
+setting: under two minutes on one core. ``--methods`` runs a subset of the method
+families; ``--ablations`` adds one row per extra SV-CoDe model (such as the ablations
+trained with ``svcode train --ablation``) at the default knob, labelled by the switches its
+configuration turns off.
 """
 
 from __future__ import annotations
@@ -51,6 +54,7 @@ from ..cm2 import CM2Operator
 from ..config import SystemConfig, load_system
 from ..geometry import pad_sensor_frame
 from ..metrics import CENTRE_RADIUS, RING_RADIUS, image_quality
+from ..network import read_model_metadata
 from ..optics import system_psfs
 from ..phantoms import make_object
 from ..pretrained import bundled_weights
@@ -70,6 +74,7 @@ RANK_SWEEP_ITERATIONS = 50
 WIENER_BALANCES = (1e-3, 1e-2, 1e-1)
 RL_ITERATIONS = (10, 30, 100)
 METRICS = ("psnr", "ssim", "psnr_centre", "psnr_ring")
+METHOD_FAMILIES = ("admm", "deconvolution", "svcode")
 
 
 @dataclass
@@ -236,8 +241,18 @@ def deconvolution_rows(operator: CM2Operator, scenes: list[Scene], quick: bool) 
     return rows
 
 
-def svcode_rows(weights: Path, system: SystemConfig, scenes: list[Scene]) -> list[Row]:
-    """SV-CoDe rows over stride, mask cache, precision and skipping."""
+def model_label(weights: Path) -> str:
+    """``SV-CoDe``, or ``SV-CoDe (no CoordGate, no PE)`` for a model with ablations."""
+    config = read_model_metadata(weights)["model_config"]
+    off = [name for name, on in (("CoordGate", config.coord_gate),
+                                 ("PE", config.positional_encoding)) if not on]  # fmt: skip
+    return "SV-CoDe" + (f" (no {', no '.join(off)})" if off else "")
+
+
+def svcode_rows(
+    weights: Path, system: SystemConfig, scenes: list[Scene], all_knobs: bool = True
+) -> list[Row]:
+    """SV-CoDe rows over stride, mask cache, precision and skipping (or the default only)."""
     from ..reconstruct import Reconstructor
 
     patch = system.patch_size
@@ -248,8 +263,9 @@ def svcode_rows(weights: Path, system: SystemConfig, scenes: list[Scene]) -> lis
         {"stride": patch // 2, "cache": True, "precision": "bf16", "skip": True},
         {"stride": patch // 2, "cache": True, "precision": "fp32", "skip": False},
     ]
+    method = model_label(weights)
     rows = []
-    for knob in knobs:
+    for knob in knobs if all_knobs else knobs[:1]:
         start = time.perf_counter()
         rec = Reconstructor.from_weights(
             weights, system, precision=knob["precision"], tile_size=patch,
@@ -258,7 +274,7 @@ def svcode_rows(weights: Path, system: SystemConfig, scenes: list[Scene]) -> lis
         rec.model.cache_masks(knob["cache"])
         rec.reconstruct(scenes[0].raw)  # warm-up: fills the mask cache, as in a recording
         label = ", ".join(f"{k} {v}" for k, v in knob.items())
-        row = Row("SV-CoDe", label, knob, setup_seconds=time.perf_counter() - start)
+        row = Row(method, label, knob, setup_seconds=time.perf_counter() - start)
         with PeakMemory() as memory:
             for scene in scenes:
                 start = time.perf_counter()
@@ -275,8 +291,17 @@ def run_benchmark(
     quick: bool = False,
     weights: Path | None = None,
     progress: Callable[[str], None] = print,
+    methods: tuple[str, ...] = METHOD_FAMILIES,
+    ablations: tuple[Path, ...] = (),
 ) -> dict[str, Any]:
-    """Run every row on the fixed scenes; return the JSON-ready report."""
+    """Run the rows of ``methods`` on the fixed scenes; return the JSON-ready report.
+
+    ``ablations`` are further SV-CoDe model files, benchmarked at the default knob only.
+    """
+    unknown = set(methods) - set(METHOD_FAMILIES)
+    if unknown:
+        raise ValueError(f"unknown method families {sorted(unknown)}; choose from "
+                         f"{', '.join(METHOD_FAMILIES)}")  # fmt: skip
     names = ("cells", "beads-sparse") if quick else tuple(s[0] for s in SCENES)
     start = time.perf_counter()
     psfs = system_psfs(system)
@@ -293,24 +318,31 @@ def run_benchmark(
         return op, time.perf_counter() - begin
 
     rows: list[Row] = []
-    op, setup = operator(ADMM_RANK)
-    checkpoints = (10, 50) if quick else ADMM_CHECKPOINTS
-    rows += admm_rows(op, scenes, checkpoints, f"K={ADMM_RANK}", setup)
-    progress(f"LSV-ADMM K={ADMM_RANK} done ({time.perf_counter() - start:.0f} s)")
-    rows += deconvolution_rows(op, scenes, quick)
-    progress(f"Wiener / RL done ({time.perf_counter() - start:.0f} s)")
-    if not quick:
+    if "admm" in methods:
+        op, setup = operator(ADMM_RANK)
+        checkpoints = (10, 50) if quick else ADMM_CHECKPOINTS
+        rows += admm_rows(op, scenes, checkpoints, f"K={ADMM_RANK}", setup)
+        progress(f"LSV-ADMM K={ADMM_RANK} done ({time.perf_counter() - start:.0f} s)")
+    if "deconvolution" in methods:
+        rows += deconvolution_rows(operator(ADMM_RANK)[0], scenes, quick)
+        progress(f"Wiener / RL done ({time.perf_counter() - start:.0f} s)")
+    if "admm" in methods and not quick:
         for rank in RANK_SWEEP:
             op, setup = operator(rank)
             label = f"K={op.rank}" + (" (simulator's)" if rank is None else "")
             rows += admm_rows(op, scenes, (RANK_SWEEP_ITERATIONS,), label, setup)
             progress(f"LSV-ADMM {label} done ({time.perf_counter() - start:.0f} s)")
-    weights = weights or bundled_weights(system)
     note = None
-    if weights is None:
-        note = "SV-CoDe rows skipped: no --weights given and no bundled model"
-    else:
-        rows += svcode_rows(weights, system, scenes)
+    if "svcode" in methods:
+        weights = weights or bundled_weights(system)
+        if weights is None:
+            note = "SV-CoDe rows skipped: no --weights given and no bundled model"
+        else:
+            rows += svcode_rows(weights, system, scenes)
+            progress(f"SV-CoDe done ({time.perf_counter() - start:.0f} s)")
+    for path in ablations:
+        rows += svcode_rows(path, system, scenes, all_knobs=False)
+        progress(f"{rows[-1].method} done ({time.perf_counter() - start:.0f} s)")
     return {
         "system": system.name,
         "quick": quick,
@@ -374,7 +406,8 @@ def plot_pareto(report: dict[str, Any], path: Path) -> None:
             ax.annotate(r["knob"], (r["seconds"], r["psnr"]), fontsize=6,
                         xytext=(3, 3), textcoords="offset points")  # fmt: skip
     front = pareto_front([(r["seconds"], r["psnr"]) for r in report["rows"]])
-    ax.plot(*zip(*front, strict=True), "k--", lw=0.8, label="Pareto front")
+    if front:
+        ax.plot(*zip(*front, strict=True), "k--", lw=0.8, label="Pareto front")
     ax.set_xscale("log")
     ax.set_xlabel("seconds per frame (CPU, log scale)")
     ax.set_ylabel("PSNR (dB), mean over scenes")
@@ -407,15 +440,24 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--system", default="cm2-mini", help="preset or system JSON")
     parser.add_argument("--weights", type=Path, help="trained SV-CoDe model for its rows")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    parser.add_argument("--methods", nargs="+", choices=METHOD_FAMILIES,
+                        default=list(METHOD_FAMILIES), help="method families to run (default: all)")
+    parser.add_argument("--ablations", nargs="+", type=Path, default=[], metavar="WEIGHTS",
+                        help="further SV-CoDe models (e.g. ablations), one row each at the "
+                        "default knob")  # fmt: skip
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the benchmark and write ``work_precision.{json,md,png}`` to ``args.out``."""
-    if args.weights is not None and not args.weights.is_file():
-        raise FileNotFoundError(f"weights not found: {args.weights}")
+    for path in [args.weights, *args.ablations]:
+        if path is not None and not path.is_file():
+            raise FileNotFoundError(f"weights not found: {path}")
     torch.set_num_threads(args.threads)
-    report = run_benchmark(load_system(args.system), args.quick, args.weights)
+    report = run_benchmark(
+        load_system(args.system), args.quick, args.weights,
+        methods=tuple(args.methods), ablations=tuple(args.ablations),
+    )  # fmt: skip
     args.out.mkdir(parents=True, exist_ok=True)
     stem = args.out / "work_precision"
     Path(f"{stem}.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
