@@ -247,3 +247,102 @@ def test_train_command_trains_a_baseline(tiny_data, tmp_path, capsys):
     assert isinstance(model, SVFourierNet)
     assert cli.main([*args, "--ablation", "no-pe"]) == 2
     assert "applies to SV-CoDe" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("method", sorted(BUILDERS))
+def test_reconstructor_matches_the_model_and_refuses_bad_input(method, operator, tmp_path):
+    from svcode_core.geometry import pad_sensor_frame
+    from svcode_core.learned_baselines import LearnedReconstructor, LearnedSpec
+
+    system = operator.system
+    model = BUILDERS[method](operator).eval()
+    path = save_model(tmp_path / f"{method}.safetensors", model, system)
+    frames, _ = _scene(operator, batch=2)
+    (top, left), (rows, cols) = system.padding, system.sensor_shape
+    raw = frames[:, top : top + rows, left : left + cols].numpy()
+    rec = LearnedSpec(method, str(path), system)()
+    result = rec.reconstruct(raw)
+    with torch.no_grad():
+        expected = model(pad_sensor_frame(torch.from_numpy(raw), system))[:, 0].numpy()
+    # frame by frame against a batch of two: float32 FFTs and convolutions sum in another
+    # order, so agreement is to a few float32 ulps of the image scale, not bit for bit
+    atol = 64 * np.finfo(np.float32).eps * float(np.abs(expected).max())
+    np.testing.assert_allclose(result.reconstruction, expected, rtol=0, atol=atol)
+    np.testing.assert_array_equal(rec.reconstruct(raw[0]).reconstruction, result.reconstruction[0])
+    with pytest.raises(ValueError, match="no demixed views"):
+        rec.reconstruct(raw, return_views=True)
+    bad = raw[0].copy()
+    bad[3, 4] = np.nan
+    with pytest.raises(ValueError, match="1 NaN or Inf"):
+        rec.reconstruct(bad)
+    other = "fouriernet" if method == "multiwiener" else "multiwiener"
+    with pytest.raises(ValueError, match=f"--method {other}"):
+        LearnedReconstructor.from_weights(path, method=other)
+
+
+def test_reconstruct_command_runs_a_learned_baseline(operator, tmp_path, capsys):
+    import tifffile
+
+    from svcode_core.cli import main
+    from svcode_core.io import write_tiff
+
+    system = operator.system
+    path = save_model(tmp_path / "fn.safetensors", BUILDERS["fouriernet"](operator), system)
+    raw = np.random.default_rng(0).random(system.sensor_shape, dtype=np.float32)
+    meas = tmp_path / "meas.tif"
+    write_tiff(meas, raw, system, kind="measurement")
+    out = tmp_path / "recon.tif"
+    args = ["reconstruct", str(meas), "--out", str(out), "--method", "fouriernet", "--quiet"]
+    assert main(args) == 2
+    assert "needs --weights" in capsys.readouterr().err
+    assert main([*args, "--weights", str(path), "--rank", "3"]) == 2
+    assert "--rank applies to the model-based baselines" in capsys.readouterr().err
+    assert main([*args, "--weights", str(path)]) == 0
+    assert tifffile.imread(out).shape == (system.sub_view_size,) * 2
+
+
+def test_footprint_grows_with_the_field_for_the_baselines_only(operator, tmp_path):
+    from svcode_core.footprint import doubled_system, model_footprint
+    from svcode_core.network import ModelConfig, SVCoDe
+
+    system = operator.system
+    big = doubled_system(system)
+    assert big.sub_view_size == 2 * system.sub_view_size
+    assert big.padded_shape == tuple(2 * v for v in system.padded_shape)
+    blocks = {name: (1,) for name in ("demix_enc_blocks", "demix_dec_blocks",
+                                      "recon_enc_blocks", "recon_dec_blocks")}  # fmt: skip
+    tiny = ModelConfig(width=4, view_width=2, mlp_hidden=8, pe_bands=2, **blocks)
+    svcode = model_footprint(save_model(tmp_path / "sv.safetensors", SVCoDe(tiny), system), system)
+    assert svcode.parameters_m == svcode.parameters_m_2s
+    fourier = model_footprint(
+        save_model(tmp_path / "fn.safetensors", BUILDERS["fouriernet"](operator), system), system
+    )
+    # nine complex half-spectrum filters: 9 · H · (W/2 + 1) · 2 numbers, about 4× at 2S
+    rows, cols = system.padded_shape
+    filters = 9 * rows * (cols // 2 + 1) * 2 / 1e6
+    assert fourier.parameters_m > filters
+    assert fourier.parameters_m_2s - fourier.parameters_m > 2.9 * filters
+
+
+def test_benchmark_rows_of_a_learned_baseline_and_merge(operator, tmp_path):
+    from svcode_core.cli.bench import Scene, learned_rows, merge_reports
+
+    system = operator.system
+    path = save_model(tmp_path / "mw.safetensors", BUILDERS["multiwiener"](operator), system)
+    frames, objects = _scene(operator, batch=1)
+    (top, left), (rows, cols) = system.padding, system.sensor_shape
+    scene = Scene(
+        "squares", objects[0, 0].numpy(), frames[0, top : top + rows, left : left + cols].numpy()
+    )
+    (row,) = learned_rows(path, system, [scene])
+    summary = row.summary()
+    assert summary["method"] == "MultiWienerNet" and np.isfinite(summary["psnr"])
+    assert summary["footprint"]["parameters_m_2s"] > summary["footprint"]["parameters_m"]
+    base = {"system": "tiny", "scenes": ["squares"], "quick": False, "simulator_rank": 3,
+            "total_seconds": 1.0, "note": None}  # fmt: skip
+    earlier = {**base, "rows": [{"method": "LSV-ADMM"}, {"method": "MultiWienerNet", "old": 1}]}
+    merged = merge_reports(earlier, {**base, "rows": [summary]})
+    assert [r["method"] for r in merged["rows"]] == ["LSV-ADMM", "MultiWienerNet"]
+    assert "old" not in merged["rows"][1] and merged["total_seconds"] == 2.0
+    with pytest.raises(ValueError, match="its scenes"):
+        merge_reports({**earlier, "scenes": ["cells"]}, {**base, "rows": [summary]})

@@ -11,10 +11,14 @@ from .filters import (
     wiener_gain,
 )
 from .models import MultiWienerNet, RefinementNet, SVFourierNet
+from .reconstruct import ARCHITECTURES, LearnedReconstructor, LearnedSpec
 
 __all__ = [
+    "ARCHITECTURES",
     "FourierFilterBank",
     "FourierNetConfig",
+    "LearnedReconstructor",
+    "LearnedSpec",
     "MultiWienerConfig",
     "MultiWienerNet",
     "RefinementNet",
