@@ -14,6 +14,7 @@ import torch
 from .config import N_LENSES, SystemConfig
 
 __all__ = [
+    "assemble_frame",
     "crop_to_sensor",
     "extract_sub_views",
     "normalized_coordinates",
@@ -152,6 +153,30 @@ def place_sub_views(views: torch.Tensor, config: SystemConfig, margin: int = 0) 
         fc0, fc1, vc0, vc1 = _overlap(int(c0), size, cols)
         frame[..., fr0:fr1, fc0:fc1] += views[..., lens, vr0:vr1, vc0:vc1]
     return frame
+
+
+def assemble_frame(views: torch.Tensor, config: SystemConfig) -> torch.Tensor:
+    """The padded frame that the nine sub-views were cut from.
+
+    Every padded-frame pixel that some sub-view covers gets its value back (the views
+    that overlap there hold the same reading, averaged, so up to float rounding); pixels
+    no view covers are zero. In the presets the nine views tile the padded frame, so
+    this inverts :func:`extract_sub_views`.
+
+    Parameters
+    ----------
+    views : torch.Tensor
+        Shape ``(..., 9, S, S)``, as returned by :func:`extract_sub_views`.
+    config : SystemConfig
+
+    Returns
+    -------
+    torch.Tensor
+        Padded frame(s) ``(..., H_pad, W_pad)``.
+    """
+    size = config.sub_view_size
+    coverage = place_sub_views(views.new_ones(N_LENSES, size, size), config)
+    return place_sub_views(views, config) / coverage.clamp(min=1)
 
 
 def crop_to_sensor(frame: torch.Tensor, config: SystemConfig) -> torch.Tensor:

@@ -8,7 +8,8 @@ between lenses (design.md §4):
    chief ray), so no further registration is needed;
 2. deconvolve sub-view ``ℓ`` with **one** PSF, lens ``ℓ``'s PSF at the object centre
    ``r = 0`` (``Σ_k w_{ℓ,k}(0) h_{ℓ,k}`` of the low-rank model), its small negative
-   values from the rank truncation set to 0, normalised to unit sum.
+   values from the rank truncation set to 0, normalised to unit sum
+   (:func:`unit_centre_psfs`).
    Because lens ``ℓ``'s image of pixel ``r`` carries the lens's transmission ``T_ℓ(r)``
    (vignetting: the PSF's total energy there), the deconvolved view estimates
    ``T_ℓ(r) x(r)``;
@@ -49,6 +50,7 @@ __all__ = [
     "fuse_views",
     "lens_transmission",
     "richardson_lucy_deconvolve",
+    "unit_centre_psfs",
     "wiener_deconvolve",
 ]
 
@@ -184,6 +186,20 @@ def centre_psfs(operator: CM2Operator) -> torch.Tensor:
     return torch.einsum("lk,lkij->lij", weights, operator.lenses.kernels)
 
 
+def unit_centre_psfs(operator: CM2Operator) -> torch.Tensor:
+    """:func:`centre_psfs` clipped at zero and normalised to unit sum, ``(9, h, w)``.
+
+    The rank truncation leaves small negative values, which are set to 0. A lens without
+    light at the centre gets a unit impulse (its fusion weight is 0 anyway).
+    """
+    psfs = centre_psfs(operator).clamp(min=0)
+    energy = psfs.sum(dim=(-2, -1), keepdim=True)
+    impulse = torch.zeros_like(psfs)
+    impulse[:, psfs.shape[-2] // 2, psfs.shape[-1] // 2] = 1.0
+    tiny = torch.finfo(psfs.dtype).tiny
+    return torch.where(energy > 0, psfs / energy.clamp(min=tiny), impulse)
+
+
 def lens_transmission(operator: CM2Operator) -> torch.Tensor:
     """Transmission ``T_ℓ(r)`` (total PSF energy) of each lens at every object pixel, (9, S, S)."""
     m, size = operator.margin, operator.system.sub_view_size
@@ -253,16 +269,10 @@ class ShiftInvariantDeconvolution:
         self.balance = balance
         self.iterations = iterations
         self.boundary = boundary
-        psfs = centre_psfs(operator).clamp(min=0)  # rank truncation leaves small negatives
-        energy = psfs.sum(dim=(-2, -1), keepdim=True)
-        # a lens without light at the centre gets a unit impulse; its fusion weight is 0 anyway
-        impulse = torch.zeros_like(psfs)
-        impulse[:, psfs.shape[-2] // 2, psfs.shape[-1] // 2] = 1.0
-        tiny = torch.finfo(psfs.dtype).tiny
-        self.psfs = torch.where(energy > 0, psfs / energy.clamp(min=tiny), impulse)
+        self.psfs = unit_centre_psfs(operator)
         self.transmission = lens_transmission(operator)
         system = operator.system
-        sensor = torch.ones(system.sensor_shape, dtype=psfs.dtype, device=psfs.device)
+        sensor = torch.ones(system.sensor_shape, dtype=self.psfs.dtype, device=self.psfs.device)
         self.coverage = extract_sub_views(pad_sensor_frame(sensor, system), system)
 
     def deconvolve_views(self, views: torch.Tensor) -> torch.Tensor:

@@ -52,6 +52,7 @@ from ..baselines import LsvAdmm, ShiftInvariantDeconvolution
 from ..baselines.admm import settings_for
 from ..cm2 import CM2Operator
 from ..config import SystemConfig, load_system
+from ..footprint import PeakMemory, model_footprint
 from ..geometry import pad_sensor_frame
 from ..metrics import CENTRE_RADIUS, RING_RADIUS, image_quality
 from ..network import read_model_metadata
@@ -74,7 +75,8 @@ RANK_SWEEP_ITERATIONS = 50
 WIENER_BALANCES = (1e-3, 1e-2, 1e-1)
 RL_ITERATIONS = (10, 30, 100)
 METRICS = ("psnr", "ssim", "psnr_centre", "psnr_ring")
-METHOD_FAMILIES = ("admm", "deconvolution", "svcode")
+METHOD_FAMILIES = ("admm", "deconvolution", "svcode", "learned")
+LEARNED_LABELS = {"MultiWienerNet": "MultiWienerNet", "SVFourierNet": "SV-FourierNet"}
 
 
 @dataclass
@@ -96,6 +98,7 @@ class Row:
     per_scene: dict[str, dict[str, float]] = field(default_factory=dict)
     setup_seconds: float = 0.0
     peak_memory_mib: float | None = None
+    footprint: dict[str, Any] | None = None
 
     def summary(self) -> dict[str, Any]:
         """Scene means of every metric and of the seconds per frame."""
@@ -108,40 +111,11 @@ class Row:
             **mean,
             "setup_seconds": self.setup_seconds,
             "peak_memory_mib": self.peak_memory_mib,
+            "footprint": self.footprint,
             "per_scene": self.per_scene,
         }
 
 
-# ------------------------------------------------------------------ memory
-class PeakMemory:
-    """Rise of the peak resident set size over a block (Linux; ``None`` elsewhere)."""
-
-    def __enter__(self) -> PeakMemory:
-        self.mib: float | None = None
-        self._start = _status_kib("VmRSS")
-        try:
-            Path("/proc/self/clear_refs").write_text("5")
-        except OSError:
-            self._start = None
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        if self._start is not None:
-            self.mib = max(_status_kib("VmHWM") - self._start, 0) / 1024
-
-
-def _status_kib(field_name: str) -> int | None:
-    try:
-        lines = Path("/proc/self/status").read_text().splitlines()
-    except OSError:
-        return None
-    for line in lines:
-        if line.startswith(field_name + ":"):
-            return int(line.split()[1])
-    return None
-
-
-# ------------------------------------------------------------------ scenes
 def make_scenes(system: SystemConfig, names: tuple[str, ...], simulator: Simulator) -> list[Scene]:
     """The fixed test scenes (object seed = index in :data:`SCENES`, noise seed 100 + index)."""
     scenes = []
@@ -282,7 +256,27 @@ def svcode_rows(
                 _score(row, scene, estimate, time.perf_counter() - start)
         row.peak_memory_mib = memory.mib
         rows.append(row)
+    rows[0].footprint = model_footprint(weights, system).to_dict()
     return rows
+
+
+def learned_rows(weights: Path, system: SystemConfig, scenes: list[Scene]) -> list[Row]:
+    """One row for a trained MultiWienerNet or SV-FourierNet, with its footprint."""
+    from ..learned_baselines import LearnedReconstructor
+
+    start = time.perf_counter()
+    rec = LearnedReconstructor.from_weights(weights, system)
+    rec.reconstruct(scenes[0].raw)  # warm-up
+    method = LEARNED_LABELS[type(rec.model).__name__]
+    row = Row(method, "fp32", {"precision": "fp32"}, setup_seconds=time.perf_counter() - start)
+    with PeakMemory() as memory:
+        for scene in scenes:
+            start = time.perf_counter()
+            estimate = rec.reconstruct(scene.raw).reconstruction
+            _score(row, scene, estimate, time.perf_counter() - start)
+    row.peak_memory_mib = memory.mib
+    row.footprint = model_footprint(weights, system).to_dict()
+    return [row]
 
 
 # ------------------------------------------------------------------ driver
@@ -293,10 +287,12 @@ def run_benchmark(
     progress: Callable[[str], None] = print,
     methods: tuple[str, ...] = METHOD_FAMILIES,
     ablations: tuple[Path, ...] = (),
+    learned: tuple[Path, ...] = (),
 ) -> dict[str, Any]:
     """Run the rows of ``methods`` on the fixed scenes; return the JSON-ready report.
 
-    ``ablations`` are further SV-CoDe model files, benchmarked at the default knob only.
+    ``ablations`` are further SV-CoDe model files, benchmarked at the default knob only;
+    ``learned`` are trained learned-baseline model files (the ``learned`` family).
     """
     unknown = set(methods) - set(METHOD_FAMILIES)
     if unknown:
@@ -332,17 +328,23 @@ def run_benchmark(
             label = f"K={op.rank}" + (" (simulator's)" if rank is None else "")
             rows += admm_rows(op, scenes, (RANK_SWEEP_ITERATIONS,), label, setup)
             progress(f"LSV-ADMM {label} done ({time.perf_counter() - start:.0f} s)")
-    note = None
+    notes = []
     if "svcode" in methods:
         weights = weights or bundled_weights(system)
         if weights is None:
-            note = "SV-CoDe rows skipped: no --weights given and no bundled model"
+            notes.append("SV-CoDe rows skipped: no --weights given and no bundled model")
         else:
             rows += svcode_rows(weights, system, scenes)
             progress(f"SV-CoDe done ({time.perf_counter() - start:.0f} s)")
     for path in ablations:
         rows += svcode_rows(path, system, scenes, all_knobs=False)
         progress(f"{rows[-1].method} done ({time.perf_counter() - start:.0f} s)")
+    if "learned" in methods:
+        if not learned:
+            notes.append("learned-baseline rows skipped: no --learned model files given")
+        for path in learned:
+            rows += learned_rows(path, system, scenes)
+            progress(f"{rows[-1].method} done ({time.perf_counter() - start:.0f} s)")
     return {
         "system": system.name,
         "quick": quick,
@@ -353,7 +355,7 @@ def run_benchmark(
         "machine": f"{platform.machine()} {platform.processor() or ''}".strip(),
         "torch": torch.__version__,
         "total_seconds": time.perf_counter() - start,
-        "note": note,
+        "note": "; ".join(notes) or None,
         "rows": [row.summary() for row in rows],
     }
 
@@ -385,6 +387,25 @@ def write_markdown(report: dict[str, Any], path: Path) -> None:
             f"{row['psnr_centre']:.2f} | {row['psnr_ring']:.2f} | {row['seconds']:.3g} | "
             f"{row['setup_seconds']:.2f} | {memory} |"
         )
+    sized = [row for row in report["rows"] if row.get("footprint")]
+    if sized:
+        lines += [
+            "",
+            "## Model size and memory at the field size S and 2S",
+            "",
+            "Parameters in millions; peak MiB: rise of the peak resident memory over building "
+            "the model and reconstructing one frame of uniform noise (no tile skipped), at the "
+            "system's sub-view size S and with every sensor length doubled (2S).",
+            "",
+            "| method | parameters (M), S | parameters (M), 2S | peak MiB, S | peak MiB, 2S |",
+            "|---|---|---|---|---|",
+        ]
+        for row in sized:
+            size = row["footprint"]
+            peaks = [("" if v is None else f"{v:.0f}") for v in
+                     (size["peak_mib"], size["peak_mib_2s"])]  # fmt: skip
+            lines.append(f"| {row['method']} | {size['parameters_m']:.2f} | "
+                         f"{size['parameters_m_2s']:.2f} | {peaks[0]} | {peaks[1]} |")  # fmt: skip
     if report["note"]:
         lines += ["", report["note"] + "."]
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
@@ -428,6 +449,29 @@ def pareto_front(points: list[tuple[float, float]]) -> list[tuple[float, float]]
     return front
 
 
+def merge_reports(earlier: dict[str, Any], report: dict[str, Any]) -> dict[str, Any]:
+    """``report`` with the rows of ``earlier`` whose method it did not run, earlier first.
+
+    Raises
+    ------
+    ValueError
+        If the two reports are of different systems, scenes or ``--quick`` settings.
+    """
+    for key in ("system", "scenes", "quick", "simulator_rank"):
+        if earlier.get(key) != report[key]:
+            raise ValueError(f"cannot merge into the earlier report: its {key} is "
+                             f"{earlier.get(key)!r}, now {report[key]!r}")  # fmt: skip
+    ran = {row["method"] for row in report["rows"]}
+    kept = [row for row in earlier["rows"] if row["method"] not in ran]
+    notes = [n for n in (earlier.get("note"), report["note"]) if n]
+    return {
+        **report,
+        "total_seconds": earlier["total_seconds"] + report["total_seconds"],
+        "note": "; ".join(dict.fromkeys(notes)) or None,
+        "rows": kept + report["rows"],
+    }
+
+
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Register ``svcode bench``."""
     parser = subparsers.add_parser(
@@ -445,21 +489,31 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--ablations", nargs="+", type=Path, default=[], metavar="WEIGHTS",
                         help="further SV-CoDe models (e.g. ablations), one row each at the "
                         "default knob")  # fmt: skip
+    parser.add_argument("--learned", nargs="+", type=Path, default=[], metavar="WEIGHTS",
+                        help="trained MultiWienerNet / SV-FourierNet model files (svcode "
+                        "train --method multiwiener|fouriernet)")  # fmt: skip
+    parser.add_argument("--merge", action="store_true",
+                        help="keep the rows of other methods from an earlier report in "
+                        "--out (same system and scenes); rows of the methods run now "
+                        "replace theirs")  # fmt: skip
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the benchmark and write ``work_precision.{json,md,png}`` to ``args.out``."""
-    for path in [args.weights, *args.ablations]:
+    for path in [args.weights, *args.ablations, *args.learned]:
         if path is not None and not path.is_file():
             raise FileNotFoundError(f"weights not found: {path}")
     torch.set_num_threads(args.threads)
     report = run_benchmark(
         load_system(args.system), args.quick, args.weights,
         methods=tuple(args.methods), ablations=tuple(args.ablations),
+        learned=tuple(args.learned),
     )  # fmt: skip
     args.out.mkdir(parents=True, exist_ok=True)
     stem = args.out / "work_precision"
+    if args.merge and Path(f"{stem}.json").is_file():
+        report = merge_reports(json.loads(Path(f"{stem}.json").read_text()), report)
     Path(f"{stem}.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
     write_markdown(report, Path(f"{stem}.md"))
     plot_pareto(report, Path(f"{stem}.png"))

@@ -9,12 +9,14 @@ from pathlib import Path
 from ..baselines import METHODS as BASELINES
 from ..baselines import BaselineSpec, add_method_arguments, baseline_options
 from ..config import load_system
+from ..learned_baselines import ARCHITECTURES as LEARNED
+from ..learned_baselines import LearnedSpec
 from ..parallel import ReconstructorSpec
 from ..pretrained import require_bundled_weights
 from ..reconstruct import PRECISIONS
 from ..stream import FrameReader, reconstruct_file
 
-METHODS = ("svcode", *BASELINES)
+METHODS = ("svcode", *BASELINES, *LEARNED)
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -36,7 +38,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         default="svcode",
         choices=METHODS,
         help="svcode (the network), admm (LSV-ADMM with TV), wiener or rl (shift-invariant "
-        "Wiener / Richardson-Lucy per view, fused); default: svcode",
+        "Wiener / Richardson-Lucy per view, fused), multiwiener or fouriernet (the learned "
+        "baselines MultiWienerNet and SV-FourierNet; need --weights); default: svcode",
     )
     parser.add_argument(
         "--system",
@@ -44,7 +47,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "input TIFF, else system.json beside it)",
     )
     parser.add_argument(
-        "--weights", type=Path, help="trained SV-CoDe model (default: the bundled model)"
+        "--weights", type=Path,
+        help="trained model (svcode default: the bundled model; required for the learned "
+        "baselines)",
     )
     parser.add_argument(
         "--views", type=Path, metavar="VIEWS.tif", help="also write the nine demixed views"
@@ -54,7 +59,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--precision",
         default="fp32",
         choices=sorted({*PRECISIONS, "fp64"}),
-        help="svcode: fp32, bf16, fp16; baselines: fp32, fp64 (default: fp32)",
+        help="svcode: fp32, bf16, fp16; model-based baselines: fp32, fp64; learned "
+        "baselines: fp32, bf16 (default: fp32)",
     )
     parser.add_argument("--tile", type=int, help="tile size P (default: the system's patch size)")
     parser.add_argument("--stride", type=int, help="tile stride (default: P/2)")
@@ -91,8 +97,34 @@ def _system(args: argparse.Namespace):
         return reader.system
 
 
-def _spec(args: argparse.Namespace, system) -> ReconstructorSpec | BaselineSpec:
+def _refuse_baseline_options(args: argparse.Namespace) -> None:
+    unused = baseline_options(argparse.Namespace(**{**vars(args), "method": "admm"}))
+    if unused:
+        raise ValueError(f"--{next(iter(unused)).replace('_', '-')} applies to the "
+                         f"model-based baselines, not to --method {args.method}")  # fmt: skip
+    if args.weights is not None and not args.weights.is_file():
+        raise FileNotFoundError(f"weights not found: {args.weights}")
+
+
+def _learned_spec(args: argparse.Namespace, system) -> LearnedSpec:
+    _refuse_baseline_options(args)
+    if args.weights is None:
+        raise ValueError(f"--method {args.method} needs --weights: no learned baseline is "
+                         "bundled; train one with `svcode train --method "
+                         f"{args.method}` (see the README)")  # fmt: skip
+    if args.precision not in ("fp32", "bf16"):
+        raise ValueError(f"--method {args.method} takes --precision fp32 or bf16")
+    if args.tile is not None or args.stride is not None:
+        raise ValueError(f"--tile and --stride do not apply to --method {args.method}: "
+                         "it reconstructs the whole frame at once")  # fmt: skip
+    options = {"device": args.device, "precision": args.precision}
+    return LearnedSpec(args.method, str(args.weights), system, options)
+
+
+def _spec(args: argparse.Namespace, system) -> ReconstructorSpec | BaselineSpec | LearnedSpec:
     """The picklable reconstructor recipe of ``args.method``."""
+    if args.method in LEARNED:
+        return _learned_spec(args, system)
     if args.method != "svcode":
         return BaselineSpec(args.method, system, {
             "device": args.device, "precision": args.precision, **baseline_options(args)
@@ -100,12 +132,7 @@ def _spec(args: argparse.Namespace, system) -> ReconstructorSpec | BaselineSpec:
     if args.precision not in PRECISIONS:
         raise ValueError(f"--precision {args.precision} applies to the baselines only; "
                          f"svcode takes {', '.join(sorted(PRECISIONS))}")
-    unused = baseline_options(argparse.Namespace(**{**vars(args), "method": "admm"}))
-    if unused:
-        raise ValueError(f"--{next(iter(unused)).replace('_', '-')} applies to the "
-                         "model-based baselines, not to --method svcode")
-    if args.weights is not None and not args.weights.is_file():
-        raise FileNotFoundError(f"weights not found: {args.weights}")
+    _refuse_baseline_options(args)
     weights = args.weights if args.weights is not None else require_bundled_weights(system)
     options = {
         "device": args.device,

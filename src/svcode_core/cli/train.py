@@ -1,4 +1,5 @@
-"""``svcode train``: train SV-CoDe on a simulated dataset (also under ``torchrun``)."""
+"""``svcode train``: train SV-CoDe or a learned baseline on a simulated dataset (also under
+``torchrun``)."""
 
 from __future__ import annotations
 
@@ -8,8 +9,13 @@ from pathlib import Path
 import torch
 
 from ..config import available_presets, load_system
+from ..learned_baselines import FourierNetConfig, MultiWienerConfig
 from ..network import ModelConfig
 from ..training import TrainConfig, Trainer, TrainingData, init_distributed, shutdown_distributed
+
+#: configuration class of each learned baseline (``--method``)
+BASELINE_CONFIGS = {"multiwiener": MultiWienerConfig, "fouriernet": FourierNetConfig}
+METHODS = ("svcode", *BASELINE_CONFIGS)
 
 ABLATIONS = {
     "none": {},
@@ -23,10 +29,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     defaults = TrainConfig()
     parser = subparsers.add_parser(
         "train",
-        help="train SV-CoDe on a simulated dataset",
+        help="train SV-CoDe or a learned baseline on a simulated dataset",
         description=(
             "Train the two-stage SV-CoDe network on the patches of a dataset written by "
-            "`svcode dataset`, with fresh sensor noise on every use. Writes checkpoints "
+            "`svcode dataset`, or a learned baseline (MultiWienerNet, SV-FourierNet) on its "
+            "whole padded frames, with fresh sensor noise on every use. Writes checkpoints "
             "every epoch, best.safetensors (best validation PSNR), log.csv, log.json and "
             "loss.png to OUT. For several GPUs run it under `torchrun --nproc-per-node N "
             "-m svcode_core.cli train ...`."
@@ -38,14 +45,17 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     source.add_argument("--system", type=Path, help="system JSON file instead of a preset")
     parser.add_argument("--data", type=Path, required=True, help="dataset folder")
     parser.add_argument("--out", type=Path, required=True, help="run folder")
+    parser.add_argument("--method", default="svcode", choices=METHODS,
+                        help="svcode (patch-wise), or a learned baseline trained on whole "
+                        "frames: multiwiener (MultiWienerNet), fouriernet (SV-FourierNet)")
     parser.add_argument("--model-config", default="mini", metavar="{mini,reference,FILE}",
-                        help="network sizes: a preset name or a ModelConfig JSON file "
-                        "(default: mini)")
+                        help="network sizes: a preset name or a JSON file of the method's "
+                        "configuration (default: mini; the baselines have mini only)")
     parser.add_argument("--ablation", default="none", choices=sorted(ABLATIONS),
                         help="switch off the coordinate gate or the positional encoding")
     parser.add_argument("--epochs", type=int, default=defaults.epochs)
     parser.add_argument("--batch-size", type=int, default=defaults.batch_size,
-                        help="patches per step and process")
+                        help="patches (whole frames for a baseline) per step and process")
     parser.add_argument("--lr", type=float, default=defaults.lr, help="initial learning rate")
     parser.add_argument("--min-lr-ratio", type=float, default=defaults.min_lr_ratio,
                         help="final learning rate of the cosine schedule, relative to --lr")
@@ -72,17 +82,32 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
-def model_config_from(spec: str, ablation: str = "none") -> ModelConfig:
-    """A ModelConfig from ``"mini"``, ``"reference"`` or a JSON file, with an ablation."""
+def model_config_from(
+    spec: str, ablation: str = "none", method: str = "svcode"
+) -> ModelConfig | MultiWienerConfig | FourierNetConfig:
+    """The configuration of ``method`` from ``"mini"``, ``"reference"`` (SV-CoDe only) or a
+    JSON file, with an ablation (SV-CoDe only)."""
+    if method in BASELINE_CONFIGS:
+        if ablation != "none":
+            raise ValueError(f"--ablation applies to SV-CoDe, not to --method {method}")
+        config_class = BASELINE_CONFIGS[method]
+        if spec == "mini":
+            return config_class().validate()
+        path = _config_file(spec, "neither mini nor")
+        return config_class.from_json(path.read_text(encoding="utf-8"))
     if spec in ("mini", "reference"):
         config = getattr(ModelConfig, spec)()
     else:
-        path = Path(spec)
-        if not path.is_file():
-            raise FileNotFoundError(f"--model-config {spec!r}: neither mini, reference nor "
-                                    "an existing JSON file")
+        path = _config_file(spec, "neither mini, reference nor")
         config = ModelConfig.from_json(path.read_text(encoding="utf-8"))
     return config.replace(**ABLATIONS[ablation])
+
+
+def _config_file(spec: str, presets: str) -> Path:
+    path = Path(spec)
+    if not path.is_file():
+        raise FileNotFoundError(f"--model-config {spec!r}: {presets} an existing JSON file")
+    return path
 
 
 def run(args: argparse.Namespace) -> int:
@@ -104,8 +129,9 @@ def run(args: argparse.Namespace) -> int:
     if device.type == "cuda" and dist.active:
         device = torch.device("cuda", dist.local_rank)
     try:
-        trainer = Trainer(data, args.out, model_config_from(args.model_config, args.ablation),
-                          config, device=device, dist=dist, progress=not args.no_progress)
+        model_config = model_config_from(args.model_config, args.ablation, args.method)
+        trainer = Trainer(data, args.out, model_config, config, device=device, dist=dist,
+                          progress=not args.no_progress)
         trainer.fit(resume=args.resume)
     finally:
         shutdown_distributed(dist)

@@ -1,7 +1,9 @@
 """Safe model files: safetensors weights plus the model and system configurations.
 
-A model file is a plain safetensors file whose string metadata holds the JSON
-:class:`~svcode_core.network.config.ModelConfig`, the JSON
+A model file is a plain safetensors file whose string metadata holds the JSON model
+configuration (:class:`~svcode_core.network.config.ModelConfig` for SV-CoDe and its
+stages, :class:`~svcode_core.learned_baselines.MultiWienerConfig` or
+:class:`~svcode_core.learned_baselines.FourierNetConfig` for the learned baselines), the JSON
 :class:`~svcode_core.config.SystemConfig` the model was trained for, the architecture
 name and optional JSON ``extra`` information. Loading never unpickles anything: the
 header is checked first (a safetensors file starts with an 8-byte little-endian header
@@ -12,11 +14,14 @@ files are refused with an error that says what the file is.
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
 from safetensors.torch import load_file, save_file
+from torch import nn
 
 from ..config import SystemConfig
 from .config import ModelConfig
@@ -25,14 +30,40 @@ from .models import DemixNet, ReconNet, SVCoDe
 __all__ = ["FORMAT", "load_model", "read_model_metadata", "save_model"]
 
 FORMAT = "svcode-model-1"
-_ARCHITECTURES = {cls.__name__: cls for cls in (SVCoDe, DemixNet, ReconNet)}
 _MAX_HEADER = 100 * 2**20
 
-Model = SVCoDe | DemixNet | ReconNet
+
+@dataclass(frozen=True)
+class _Architecture:
+    """How to rebuild a stored model: its configuration class and constructor."""
+
+    config: type
+    build: Callable[[Any, SystemConfig], nn.Module]
+
+
+def _svcode_family(cls: type) -> _Architecture:
+    return _Architecture(ModelConfig, lambda config, system: cls(config))
+
+
+def _architectures() -> dict[str, _Architecture]:
+    """Every architecture a model file may hold, by class name."""
+    # imported here: the learned baselines build on this package
+    from ..learned_baselines import (
+        FourierNetConfig,
+        MultiWienerConfig,
+        MultiWienerNet,
+        SVFourierNet,
+    )
+
+    return {
+        **{cls.__name__: _svcode_family(cls) for cls in (SVCoDe, DemixNet, ReconNet)},
+        "MultiWienerNet": _Architecture(MultiWienerConfig, MultiWienerNet),
+        "SVFourierNet": _Architecture(FourierNetConfig, SVFourierNet),
+    }
 
 
 def save_model(
-    path: str | Path, model: Model, system: SystemConfig, extra: dict[str, Any] | None = None
+    path: str | Path, model: nn.Module, system: SystemConfig, extra: dict[str, Any] | None = None
 ) -> Path:
     """Write the weights and both configurations to a safetensors file.
 
@@ -40,7 +71,7 @@ def save_model(
     ----------
     path : str or Path
         Destination (conventionally ``*.safetensors``).
-    model : SVCoDe, DemixNet or ReconNet
+    model : SVCoDe, DemixNet, ReconNet, MultiWienerNet or SVFourierNet
     system : SystemConfig
         The instrument the model was trained for.
     extra : dict, optional
@@ -51,8 +82,9 @@ def save_model(
     Path
     """
     name = type(model).__name__
-    if name not in _ARCHITECTURES:
-        raise TypeError(f"model must be one of {sorted(_ARCHITECTURES)}, got {name}")
+    architectures = _architectures()
+    if name not in architectures:
+        raise TypeError(f"model must be one of {sorted(architectures)}, got {name}")
     if not isinstance(system, SystemConfig):
         raise TypeError(f"system must be a SystemConfig, got {type(system).__name__}")
     metadata = {
@@ -74,8 +106,8 @@ def read_model_metadata(path: str | Path) -> dict[str, Any]:
     Returns
     -------
     dict
-        ``architecture`` (str), ``model_config`` (ModelConfig), ``system``
-        (SystemConfig) and ``extra`` (dict).
+        ``architecture`` (str), ``model_config`` (the architecture's configuration),
+        ``system`` (SystemConfig) and ``extra`` (dict).
 
     Raises
     ------
@@ -89,11 +121,12 @@ def read_model_metadata(path: str | Path) -> dict[str, Any]:
     meta = header.get("__metadata__") or {}
     if meta.get("format") != FORMAT:
         raise ValueError(f"{path}: a safetensors file, but not an SV-CoDe model ({FORMAT})")
-    if meta.get("architecture") not in _ARCHITECTURES:
+    architecture = _architectures().get(meta.get("architecture"))
+    if architecture is None:
         raise ValueError(f"{path}: unknown architecture {meta.get('architecture')!r}")
     return {
         "architecture": meta["architecture"],
-        "model_config": ModelConfig.from_json(meta["model_config"]),
+        "model_config": architecture.config.from_json(meta["model_config"]),
         "system": SystemConfig.from_json(meta["system_config"]),
         "extra": json.loads(meta.get("extra", "{}")),
     }
@@ -103,7 +136,7 @@ def load_model(
     path: str | Path,
     system: SystemConfig | None = None,
     device: torch.device | str = "cpu",
-) -> tuple[Model, SystemConfig]:
+) -> tuple[nn.Module, SystemConfig]:
     """Load a model file written by :func:`save_model`, bit for bit, in eval mode.
 
     Parameters
@@ -134,7 +167,7 @@ def load_model(
                 f"{path}: the model was trained for system {stored.name!r}, which differs "
                 f"from {system.name!r} in {len(differences)} field(s): " + "; ".join(differences)
             )
-    model = _ARCHITECTURES[meta["architecture"]](meta["model_config"])
+    model = _architectures()[meta["architecture"]].build(meta["model_config"], stored)
     state = load_file(str(path), device="cpu")
     expected = model.state_dict()
     problems = [f"missing {k}" for k in expected if k not in state]

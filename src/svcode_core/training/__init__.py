@@ -1,22 +1,28 @@
-"""Training SV-CoDe from physics simulations: data, patch sampler, loss and trainer."""
+"""Training SV-CoDe and the learned baselines from physics simulations: data, samplers,
+loss, tasks and trainer."""
 
 from .dataset import DataRecipe, TrainingData, generate_dataset, split_frames, training_object
 from .distributed import DistInfo, init_distributed, shutdown_distributed
-from .loss import psnr, ssim_per_sample, stage_loss, svcode_loss
-from .sampler import EpochSampler, PatchDataset, check_disjoint_view_patches
+from .loss import joint_loss, psnr, ssim_per_sample, stage_loss, svcode_loss
+from .sampler import EpochSampler, FrameDataset, PatchDataset, check_disjoint_view_patches
+from .tasks import FrameTask, PatchTask, training_task
 from .trainer import TrainConfig, Trainer
 
 __all__ = [
     "DataRecipe",
     "DistInfo",
     "EpochSampler",
+    "FrameDataset",
+    "FrameTask",
     "PatchDataset",
+    "PatchTask",
     "TrainConfig",
     "Trainer",
     "TrainingData",
     "check_disjoint_view_patches",
     "generate_dataset",
     "init_distributed",
+    "joint_loss",
     "psnr",
     "shutdown_distributed",
     "split_frames",
@@ -24,4 +30,5 @@ __all__ = [
     "stage_loss",
     "svcode_loss",
     "training_object",
+    "training_task",
 ]

@@ -1,17 +1,20 @@
 """The joint SV-CoDe loss and the validation metrics.
 
-``L = L_demix + L_recon`` with ``L_stage = α (1 − SSIM) + β MSE`` (α = β = 1 in the paper);
-SSIM is pytorch-msssim's Gaussian-window SSIM (window 11, σ 1.5, ``data_range = 1``),
-averaged over channels and batch. Everything is computed in float32, also when the network
+``L = L_demix + L_recon`` with ``L_stage = α (1 − SSIM) + β MSE`` (α = β = 1 in the paper;
+the learned baselines have the reconstruction stage alone, :func:`joint_loss`); SSIM is
+pytorch-msssim's Gaussian-window SSIM (window 11, σ 1.5, ``data_range = 1``), averaged over
+channels and batch. Everything is computed in float32, also when the network
 ran under bf16 autocast.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import torch
 from pytorch_msssim import ssim
 
-__all__ = ["psnr", "ssim_per_sample", "stage_loss", "svcode_loss"]
+__all__ = ["joint_loss", "psnr", "ssim_per_sample", "stage_loss", "svcode_loss"]
 
 #: Smallest MSE used by :func:`psnr` (caps the PSNR of a perfect patch at 100 dB).
 MIN_MSE = 1e-10
@@ -46,6 +49,22 @@ def stage_loss(
     return alpha * structural + beta * torch.mean((prediction - target) ** 2)
 
 
+def joint_loss(
+    stages: Mapping[str, tuple[torch.Tensor, torch.Tensor]], alpha: float = 1.0, beta: float = 1.0
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Sum of :func:`stage_loss` over named ``(prediction, target)`` pairs.
+
+    Returns
+    -------
+    (loss, parts)
+        The differentiable total and each stage's loss as a float, by name.
+    """
+    losses = {name: stage_loss(pred, target, alpha, beta) for name, (pred, target) in
+              stages.items()}
+    parts = {name: float(loss.detach()) for name, loss in losses.items()}
+    return sum(losses.values()), parts
+
+
 def svcode_loss(
     demixed: torch.Tensor,
     recon: torch.Tensor,
@@ -69,10 +88,8 @@ def svcode_loss(
     (loss, parts)
         The differentiable total and the floats ``demix`` and ``recon``.
     """
-    demix_loss = stage_loss(demixed, demixed_target, alpha, beta)
-    recon_loss = stage_loss(recon, object_target, alpha, beta)
-    parts = {"demix": float(demix_loss.detach()), "recon": float(recon_loss.detach())}
-    return demix_loss + recon_loss, parts
+    return joint_loss({"demix": (demixed, demixed_target), "recon": (recon, object_target)},
+                      alpha, beta)
 
 
 @torch.no_grad()

@@ -1,4 +1,5 @@
-"""Training patches: aligned crops of the nine sub-views with their global origins.
+"""Training samples: aligned patches of the nine sub-views with their global origins, or
+whole padded frames for the full-frame learned baselines (:class:`FrameDataset`).
 
 Every frame is cut into ``P × P`` patches at the configured stride (``P / 2`` in the
 presets, the last patch flush with the edge, :class:`~svcode_core.tiling.TileGrid`). A
@@ -23,12 +24,18 @@ import numpy as np
 import torch
 
 from ..config import SystemConfig
-from ..geometry import extract_sub_views
+from ..geometry import assemble_frame, crop_to_sensor, extract_sub_views, pad_sensor_frame
 from ..noise import apply_sensor_noise
 from ..tiling import TileGrid
 from .dataset import TrainingData
 
-__all__ = ["EpochSampler", "PatchDataset", "check_disjoint_view_patches", "derive_seed"]
+__all__ = [
+    "EpochSampler",
+    "FrameDataset",
+    "PatchDataset",
+    "check_disjoint_view_patches",
+    "derive_seed",
+]
 
 
 def derive_seed(*entropy: int) -> int:
@@ -61,7 +68,43 @@ def check_disjoint_view_patches(system: SystemConfig, patch: int) -> None:
                 )
 
 
-class PatchDataset(torch.utils.data.Dataset):
+class _NoisySamples(torch.utils.data.Dataset):
+    """Samples of some frames of a :class:`TrainingData` with noise drawn on access.
+
+    ``fixed_noise`` (validation): sample ``i`` always gets the draw seeded by ``(seed, i)``;
+    otherwise every access draws fresh noise, unless the key is ``(index, noise_seed)``.
+    """
+
+    def __init__(
+        self,
+        data: TrainingData,
+        frames: Sequence[int],
+        fixed_noise: bool = False,
+        seed: int = 0,
+        noise: bool = True,
+    ) -> None:
+        frames = sorted({int(f) for f in frames})
+        if not frames:
+            raise ValueError(f"no frames selected for the {type(self).__name__}")
+        if frames[0] < 0 or frames[-1] >= len(data):
+            raise ValueError(f"frame indices must lie in [0, {len(data)}), "
+                             f"got {frames[0]}..{frames[-1]}")
+        self.data, self.system, self.frames = data, data.system, frames
+        self.fixed_noise, self.seed, self.noise = fixed_noise, int(seed), noise
+        self._generator = torch.Generator().manual_seed(derive_seed(self.seed, 2))
+
+    def _resolve(self, key: int | tuple[int, int]) -> tuple[int, torch.Generator]:
+        """Sample index and noise generator of an item key."""
+        index, noise_seed = (key if isinstance(key, tuple) else (key, None))
+        index = int(index)
+        if noise_seed is not None:
+            return index, torch.Generator().manual_seed(int(noise_seed))
+        if self.fixed_noise:
+            return index, torch.Generator().manual_seed(derive_seed(self.seed, 1, index))
+        return index, self._generator
+
+
+class PatchDataset(_NoisySamples):
     """All patches of some frames of a :class:`TrainingData`, with noise drawn on access.
 
     Parameters
@@ -93,19 +136,11 @@ class PatchDataset(torch.utils.data.Dataset):
         seed: int = 0,
         noise: bool = True,
     ) -> None:
+        super().__init__(data, frames, fixed_noise, seed, noise)
         system = data.system
-        frames = sorted({int(f) for f in frames})
-        if not frames:
-            raise ValueError("no frames selected for the patch dataset")
-        if frames[0] < 0 or frames[-1] >= len(data):
-            raise ValueError(f"frame indices must lie in [0, {len(data)}), "
-                             f"got {frames[0]}..{frames[-1]}")
         self.patch = system.patch_size
         check_disjoint_view_patches(system, self.patch)
-        self.data, self.system, self.frames = data, system, frames
         self.origins = TileGrid(system.sub_view_size, self.patch, system.patch_stride).origins
-        self.fixed_noise, self.seed, self.noise = fixed_noise, int(seed), noise
-        self._generator = torch.Generator().manual_seed(derive_seed(self.seed, 2))
         window = torch.zeros(system.padded_shape)
         window[system.sensor_window] = 1
         self.sensor_mask = extract_sub_views(window, system).numpy().astype(bool)  # (9, S, S)
@@ -120,22 +155,13 @@ class PatchDataset(torch.utils.data.Dataset):
         frame, position = divmod(index, len(self.origins))
         return self.frames[frame], self.origins[position]
 
-    def _noise_generator(self, index: int, noise_seed: int | None) -> torch.Generator:
-        if noise_seed is not None:
-            return torch.Generator().manual_seed(int(noise_seed))
-        if self.fixed_noise:
-            return torch.Generator().manual_seed(derive_seed(self.seed, 1, index))
-        return self._generator
-
     def __getitem__(self, key: int | tuple[int, int]) -> dict[str, torch.Tensor | int]:
-        index, noise_seed = (key if isinstance(key, tuple) else (key, None))
-        index = int(index)
+        index, generator = self._resolve(key)
         frame, (r, c) = self.locate(index)
         crop = (slice(r, r + self.patch), slice(c, c + self.patch))
         clean = torch.from_numpy(np.array(self.data.views[frame][(slice(None), *crop)]))
         if self.noise:
             inside = torch.from_numpy(self.sensor_mask[(slice(None), *crop)])
-            generator = self._noise_generator(index, noise_seed)
             views = apply_sensor_noise(clean, self.system.noise, generator) * inside
         else:
             views = clean
@@ -144,6 +170,42 @@ class PatchDataset(torch.utils.data.Dataset):
             "demixed": torch.from_numpy(np.array(self.data.demixed[frame][(slice(None), *crop)])),
             "object": torch.from_numpy(np.array(self.data.objects[frame][crop]))[None],
             "origin": torch.tensor([r, c], dtype=torch.int64),
+            "index": index,
+        }
+
+
+class FrameDataset(_NoisySamples):
+    """Whole padded sensor frames of some frames of a :class:`TrainingData`, with noise.
+
+    For methods that filter the whole frame (the learned baselines,
+    :mod:`svcode_core.learned_baselines`). The padded frame is rebuilt from the stored
+    sub-views (:func:`~svcode_core.geometry.assemble_frame`) and the sensor model is
+    applied to the sensor window only, as :class:`~svcode_core.simulate.Simulator` does,
+    so the nine views of one frame share one noise draw. Parameters as
+    :class:`PatchDataset`.
+
+    Notes
+    -----
+    Items are dictionaries of ``frame (H_pad, W_pad)`` and ``object (1, S, S)`` float32
+    tensors and ``index``; keys as in :class:`PatchDataset`.
+    """
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __getitem__(self, key: int | tuple[int, int]) -> dict[str, torch.Tensor | int]:
+        index, generator = self._resolve(key)
+        if not 0 <= index < len(self):
+            raise IndexError(f"frame index {index} out of range [0, {len(self)})")
+        frame = self.frames[index]
+        padded = assemble_frame(torch.from_numpy(np.array(self.data.views[frame])), self.system)
+        if self.noise:
+            sensor = crop_to_sensor(padded, self.system)
+            sensor = apply_sensor_noise(sensor, self.system.noise, generator)
+            padded = pad_sensor_frame(sensor, self.system)
+        return {
+            "frame": padded,
+            "object": torch.from_numpy(np.array(self.data.objects[frame]))[None],
             "index": index,
         }
 

@@ -1,4 +1,9 @@
-"""Training SV-CoDe on a simulated dataset: Adam, cosine annealing, checkpoints, logs.
+"""Training on a simulated dataset: Adam, cosine annealing, checkpoints, logs.
+
+The trainer is method-agnostic: a task (:mod:`.tasks`) builds the model and its samples
+and names its ``(prediction, target)`` stages, so SV-CoDe (patches, two stages) and the
+learned baselines (whole frames, one stage) share the loss, the schedule, the checkpoint
+format and the logs. The task follows from the type of the model configuration.
 
 A run folder holds
 
@@ -41,18 +46,19 @@ from safetensors.torch import load_file
 from torch.nn.parallel import DistributedDataParallel
 from tqdm.auto import tqdm
 
-from ..network import ModelConfig, SVCoDe, save_model
+from ..learned_baselines import FourierNetConfig, MultiWienerConfig
+from ..network import ModelConfig, save_model
 from .dataset import TrainingData
 from .distributed import DistInfo, all_reduce_sum, barrier
-from .loss import psnr, ssim_per_sample, svcode_loss
-from .sampler import EpochSampler, PatchDataset, derive_seed
+from .loss import joint_loss, psnr, ssim_per_sample
+from .sampler import EpochSampler, derive_seed
+from .tasks import Stages, training_task
 
 __all__ = ["TrainConfig", "Trainer"]
 
 CHECKPOINTS = "checkpoints"
 LATEST = "latest.json"
 BEST = "best.safetensors"
-_METRICS = ("loss", "recon_psnr", "recon_ssim", "demix_psnr", "demix_ssim")
 
 
 @dataclass(frozen=True)
@@ -63,7 +69,7 @@ class TrainConfig:
     ----------
     epochs : int
     batch_size : int
-        Patches per step and process.
+        Patches (whole frames for the learned baselines) per step and process.
     lr : float
         Peak Adam learning rate: reached linearly over ``warmup_steps`` steps, then
         cosine-annealed per step to ``lr · min_lr_ratio`` at the last step.
@@ -75,9 +81,10 @@ class TrainConfig:
     grad_clip : float
         Maximum global gradient norm.
     patches_per_epoch : int or None
-        Training patches drawn per epoch over all processes; ``None``: all of them.
+        Training samples (patches, or frames) drawn per epoch over all processes;
+        ``None``: all of them.
     val_patches : int or None
-        Size of the fixed validation subset; ``None``: every validation patch.
+        Size of the fixed validation subset; ``None``: every validation sample.
     alpha, beta : float
         Weights of ``1 − SSIM`` and MSE in the loss.
     seed : int
@@ -88,7 +95,7 @@ class TrainConfig:
         Training patches come in runs of this many that share their origin
         (:class:`EpochSampler` ``group``); the network computes the coordinate masks once
         per distinct origin in a batch, so ``same_origin = batch_size`` makes a CPU step
-        several times cheaper. 1: independent draws.
+        several times cheaper. 1: independent draws. Ignored for whole frames.
     """
 
     epochs: int = 10
@@ -167,20 +174,16 @@ def _atomic_text(path: Path, text: str) -> None:
     _atomic_write(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))
 
 
-def _collate(items: list[dict[str, Any]]) -> dict[str, torch.Tensor]:
-    return {key: torch.stack([item[key] for item in items]) for key in
-            ("views", "demixed", "object", "origin")}
-
-
 class Trainer:
-    """Train an :class:`~svcode_core.network.SVCoDe` on a :class:`TrainingData` folder.
+    """Train SV-CoDe or a learned baseline on a :class:`TrainingData` folder.
 
     Parameters
     ----------
     data : TrainingData
     out_dir : str or Path
         Run folder (created).
-    model_config : ModelConfig
+    model_config : ModelConfig, MultiWienerConfig or FourierNetConfig
+        SV-CoDe (patch-wise), MultiWienerNet or SV-FourierNet (whole frames).
     config : TrainConfig
     device : str or torch.device
     dist : DistInfo, optional
@@ -200,7 +203,7 @@ class Trainer:
         self,
         data: TrainingData,
         out_dir: str | Path,
-        model_config: ModelConfig,
+        model_config: ModelConfig | MultiWienerConfig | FourierNetConfig,
         config: TrainConfig,
         device: str | torch.device = "cpu",
         dist: DistInfo | None = None,
@@ -215,25 +218,28 @@ class Trainer:
         self.progress = progress and self.dist.is_main
         self.autocast = self.device.type == "cuda"
 
+        self.task = training_task(self.model_config)
+        self.stages = self.task.stages
         torch.manual_seed(derive_seed(config.seed, 4))
-        self.model = SVCoDe(model_config).to(self.device)
+        self.model = self.task.build(self.system).to(self.device)
         self.net: torch.nn.Module = self.model
         if self.dist.active:
             ids = [self.device.index] if self.device.type == "cuda" else None
             self.net = DistributedDataParallel(self.model, device_ids=ids)
 
-        self.train_set = PatchDataset(data, data.train_frames, fixed_noise=False, seed=config.seed)
+        self.train_set = self.task.dataset(data, data.train_frames, False, config.seed)
         per_epoch = config.patches_per_epoch or len(self.train_set)
+        origins = self.task.origins(self.train_set)
+        group = config.same_origin if origins > 1 else 1  # whole frames: nothing to share
         self.sampler = EpochSampler(len(self.train_set), per_epoch, config.seed,
-                                    self.dist.rank, self.dist.world_size,
-                                    config.same_origin, len(self.train_set.origins))
+                                    self.dist.rank, self.dist.world_size, group, origins)
         self.steps_per_epoch = len(self.sampler) // config.batch_size
         if self.steps_per_epoch < 1:
             raise ValueError(
                 f"{len(self.sampler)} patches per process and epoch make no batch of "
                 f"{config.batch_size}: raise patches_per_epoch or lower batch_size"
             )
-        self.val_set = PatchDataset(data, data.val_frames, fixed_noise=True, seed=config.seed)
+        self.val_set = self.task.dataset(data, data.val_frames, True, config.seed)
         val_indices = np.arange(len(self.val_set))
         if config.val_patches is not None and config.val_patches < len(val_indices):
             rng = np.random.default_rng(derive_seed(config.seed, 5))
@@ -258,11 +264,16 @@ class Trainer:
         return {k: v.to(self.device, non_blocking=True) if k != "origin" else v
                 for k, v in batch.items()}
 
-    def _forward(
-        self, net: torch.nn.Module, batch: dict[str, torch.Tensor]
-    ) -> tuple[torch.Tensor, torch.Tensor]:
+    def _forward(self, net: torch.nn.Module, batch: dict[str, torch.Tensor]) -> Stages:
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.autocast):
-            return net(batch["views"], batch["origin"], self.system.sub_view_size)
+            return self.task.outputs(net, batch, self.system)
+
+    @property
+    def metrics(self) -> tuple[str, ...]:
+        """Validation metrics: the loss, then PSNR and SSIM of the reconstruction and of
+        every other stage."""
+        order = ["recon", *(s for s in self.stages if s != "recon")]
+        return ("loss", *(f"{s}_{m}" for s in order for m in ("psnr", "ssim")))
 
     def train_step(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
         """One optimisation step on a collated batch; returns the loss parts.
@@ -274,9 +285,8 @@ class Trainer:
         """
         batch = self._to_device(batch)
         self.net.train()
-        demixed, recon = self._forward(self.net, batch)
-        loss, parts = svcode_loss(demixed, recon, batch["demixed"], batch["object"],
-                                  self.config.alpha, self.config.beta)
+        loss, parts = joint_loss(self._forward(self.net, batch),
+                                 self.config.alpha, self.config.beta)
         value = float(loss.detach())
         if not math.isfinite(value):
             raise FloatingPointError(
@@ -296,22 +306,22 @@ class Trainer:
         self.sampler.set_epoch(epoch)
         loader = torch.utils.data.DataLoader(
             self.train_set, batch_size=self.config.batch_size, sampler=self.sampler,
-            drop_last=True, num_workers=self.config.workers, collate_fn=_collate,
+            drop_last=True, num_workers=self.config.workers, collate_fn=self.task.collate,
         )
-        sums = torch.zeros(4, dtype=torch.float64)
+        keys = ("loss", *self.stages, "grad_norm")
+        sums = torch.zeros(len(keys), dtype=torch.float64)
         bar = tqdm(loader, total=self.steps_per_epoch, desc=f"epoch {epoch + 1}/"
                    f"{self.config.epochs}", disable=not self.progress, leave=False)
         for batch in bar:
             parts = self.train_step(batch)
             self.step_losses.append(parts["loss"])
-            sums += torch.tensor([parts["loss"], parts["demix"], parts["recon"],
-                                  parts["grad_norm"]], dtype=torch.float64)
+            sums += torch.tensor([parts[key] for key in keys], dtype=torch.float64)
             bar.set_postfix(loss=f"{parts['loss']:.4f}",
                             lr=f"{self.scheduler.get_last_lr()[0]:.2e}")
         sums = all_reduce_sum(sums.to(self._reduce_device), self.dist).cpu()
         sums /= self.steps_per_epoch * self.dist.world_size
-        return dict(zip(("train_loss", "train_demix", "train_recon", "grad_norm"),
-                        sums.tolist(), strict=True))
+        names = ("train_loss", *(f"train_{s}" for s in self.stages), "grad_norm")
+        return dict(zip(names, sums.tolist(), strict=True))
 
     @property
     def _reduce_device(self) -> torch.device:
@@ -320,30 +330,26 @@ class Trainer:
 
     @torch.no_grad()
     def validate(self) -> dict[str, float]:
-        """Loss, PSNR and SSIM of the reconstruction and the demixed views on the fixed
-        validation patches (fixed noise), averaged over patches and processes."""
+        """Loss, PSNR and SSIM of every stage (:attr:`metrics`) on the fixed validation
+        samples (fixed noise), averaged over samples and processes."""
         self.model.eval()
-        sums = torch.zeros(len(_METRICS) + 1, dtype=torch.float64)
+        names = self.metrics
+        sums = torch.zeros(len(names) + 1, dtype=torch.float64)
         size = self.config.batch_size
-        with self.model.cache_masks(max_bytes=2**28):
+        with self.task.evaluating(self.model):
             for start in range(0, len(self.val_indices), size):
                 items = [self.val_set[i] for i in self.val_indices[start : start + size]]
-                batch = self._to_device(_collate(items))
-                demixed, recon = self._forward(self.model, batch)
-                loss, _ = svcode_loss(demixed, recon, batch["demixed"], batch["object"],
-                                      self.config.alpha, self.config.beta)
+                stages = self._forward(self.model, self._to_device(self.task.collate(items)))
+                loss, _ = joint_loss(stages, self.config.alpha, self.config.beta)
                 n = len(items)
-                sums += torch.tensor([
-                    float(loss) * n,
-                    float(psnr(recon, batch["object"]).sum()),
-                    float(ssim_per_sample(recon, batch["object"]).sum()),
-                    float(psnr(demixed, batch["demixed"]).sum()),
-                    float(ssim_per_sample(demixed, batch["demixed"]).sum()),
-                    n,
-                ], dtype=torch.float64)
+                values = {"loss": float(loss) * n}
+                for stage, (prediction, target) in stages.items():
+                    values[f"{stage}_psnr"] = float(psnr(prediction, target).sum())
+                    values[f"{stage}_ssim"] = float(ssim_per_sample(prediction, target).sum())
+                sums += torch.tensor([values[name] for name in names] + [n], dtype=torch.float64)
         sums = all_reduce_sum(sums.to(self._reduce_device), self.dist).cpu()
         count = max(sums[-1].item(), 1.0)
-        return {f"val_{name}": sums[i].item() / count for i, name in enumerate(_METRICS)}
+        return {f"val_{name}": sums[i].item() / count for i, name in enumerate(names)}
 
     # ---------------------------------------------------------------- the run
     def fit(self, resume: bool = False) -> list[dict[str, float]]:
@@ -399,8 +405,8 @@ class Trainer:
                      "recipe": self.data.manifest["recipe"],
                      "train_frames": len(self.data.train_frames),
                      "val_frames": len(self.data.val_frames),
-                     "train_patches": len(self.train_set),
-                     "val_patches": self.val_total},
+                     f"train_{self.task.unit}": len(self.train_set),
+                     f"val_{self.task.unit}": self.val_total},
             "world_size": self.dist.world_size,
             "device": str(self.device),
         }
@@ -511,18 +517,19 @@ class Trainer:
         ax_loss.set(xlabel="step", ylabel="loss  Σ α(1−SSIM) + β·MSE", yscale="log")
         ax_loss.legend()
         epochs = [r["epoch"] for r in self.history]
-        ax_psnr.plot(epochs, [r["val_recon_psnr"] for r in self.history], "o-",
-                     label="reconstruction")
-        ax_psnr.plot(epochs, [r["val_demix_psnr"] for r in self.history], "s-",
-                     label="demixed views")
+        labels = {"recon": "reconstruction", "demix": "demixed views"}
+        for stage, marker in zip(self.stages[::-1], "os", strict=False):
+            ax_psnr.plot(epochs, [r[f"val_{stage}_psnr"] for r in self.history], f"{marker}-",
+                         label=labels.get(stage, stage))
         ax_psnr.set(xlabel="epoch", ylabel="validation PSNR (dB)")
         ax_psnr.legend()
-        figure.suptitle(f"SV-CoDe training on {self.system.name}")
+        figure.suptitle(f"{self.task.label} training on {self.system.name}")
         figure.savefig(path, format="png", dpi=100)
 
 
 def _summary(record: dict[str, float]) -> str:
+    demix = (f", demix PSNR {record['val_demix_psnr']:.2f} dB"
+             if "val_demix_psnr" in record else "")
     return (f"epoch {record['epoch']}: train {record['train_loss']:.4f}, val "
             f"{record['val_loss']:.4f}, recon PSNR {record['val_recon_psnr']:.2f} dB / "
-            f"SSIM {record['val_recon_ssim']:.3f}, demix PSNR {record['val_demix_psnr']:.2f} dB "
-            f"({record['seconds']:.0f} s)")
+            f"SSIM {record['val_recon_ssim']:.3f}{demix} ({record['seconds']:.0f} s)")

@@ -1,0 +1,142 @@
+"""What the trainer trains: the model, its samples and its ``(prediction, target)`` stages.
+
+:class:`~.trainer.Trainer` is method-agnostic; a task supplies the method-specific parts:
+
+* :class:`PatchTask`: SV-CoDe on aligned sub-view patches with their origins, two stages
+  (``demix``, ``recon``);
+* :class:`FrameTask`: the learned baselines (:mod:`svcode_core.learned_baselines`) on whole
+  padded frames (they filter the whole field of view), one stage (``recon``), initialised
+  from the system's pupil-model operator.
+
+:func:`training_task` picks the task from the type of the model configuration.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Sequence
+from contextlib import AbstractContextManager
+from typing import Any
+
+import torch
+from torch import nn
+
+from ..cm2 import CM2Operator
+from ..config import SystemConfig
+from ..learned_baselines import FourierNetConfig, MultiWienerConfig, MultiWienerNet, SVFourierNet
+from ..network import ModelConfig, SVCoDe
+from .dataset import TrainingData
+from .sampler import FrameDataset, PatchDataset
+
+__all__ = ["FrameTask", "PatchTask", "Stages", "training_task"]
+
+Stages = dict[str, tuple[torch.Tensor, torch.Tensor]]
+"""Named ``(prediction, target)`` pairs of one batch, reconstruction under ``"recon"``."""
+
+_EVAL_MASK_BYTES = 2**28
+
+
+def _stack(items: list[dict[str, Any]], keys: Sequence[str]) -> dict[str, torch.Tensor]:
+    return {key: torch.stack([item[key] for item in items]) for key in keys}
+
+
+class PatchTask:
+    """SV-CoDe (Demixing-Net and Recon-Net) trained on patches.
+
+    Parameters
+    ----------
+    config : ModelConfig
+    """
+
+    label = "SV-CoDe"
+    unit = "patches"
+    stages = ("demix", "recon")
+
+    def __init__(self, config: ModelConfig) -> None:
+        self.config = config
+
+    def build(self, system: SystemConfig) -> nn.Module:
+        """A freshly initialised model."""
+        return SVCoDe(self.config)
+
+    def dataset(
+        self, data: TrainingData, frames: Sequence[int], fixed_noise: bool, seed: int
+    ) -> PatchDataset:
+        """The samples of ``frames``."""
+        return PatchDataset(data, frames, fixed_noise=fixed_noise, seed=seed)
+
+    def origins(self, dataset: PatchDataset) -> int:
+        """Distinct sample origins per frame (patches at one origin share their masks)."""
+        return len(dataset.origins)
+
+    def collate(self, items: list[dict[str, Any]]) -> dict[str, torch.Tensor]:
+        """Stack samples into a batch."""
+        return _stack(items, ("views", "demixed", "object", "origin"))
+
+    def outputs(
+        self, net: nn.Module, batch: dict[str, torch.Tensor], system: SystemConfig
+    ) -> Stages:
+        """Run ``net`` on a batch; the pairs of both stages."""
+        demixed, recon = net(batch["views"], batch["origin"], system.sub_view_size)
+        return {"demix": (demixed, batch["demixed"]), "recon": (recon, batch["object"])}
+
+    def evaluating(self, model: nn.Module) -> AbstractContextManager:
+        """Context for validation passes: the coordinate-mask cache."""
+        return model.cache_masks(max_bytes=_EVAL_MASK_BYTES)
+
+
+class FrameTask:
+    """A learned baseline (MultiWienerNet or SV-FourierNet) trained on whole frames.
+
+    Parameters
+    ----------
+    config : MultiWienerConfig or FourierNetConfig
+    """
+
+    unit = "frames"
+    stages = ("recon",)
+    _MODELS = {MultiWienerConfig: MultiWienerNet, FourierNetConfig: SVFourierNet}
+
+    def __init__(self, config: MultiWienerConfig | FourierNetConfig) -> None:
+        self.config = config
+        self.model_class = self._MODELS[type(config)]
+        self.label = self.model_class.__name__
+
+    def build(self, system: SystemConfig) -> nn.Module:
+        """The model with its filters initialised from the pupil-model operator of ``system``."""
+        return self.model_class.from_operator(CM2Operator.from_system(system), self.config)
+
+    def dataset(
+        self, data: TrainingData, frames: Sequence[int], fixed_noise: bool, seed: int
+    ) -> FrameDataset:
+        """The padded frames of ``frames``."""
+        return FrameDataset(data, frames, fixed_noise=fixed_noise, seed=seed)
+
+    def origins(self, dataset: FrameDataset) -> int:
+        """One: a sample is the whole frame."""
+        return 1
+
+    def collate(self, items: list[dict[str, Any]]) -> dict[str, torch.Tensor]:
+        """Stack samples into a batch."""
+        return _stack(items, ("frame", "object"))
+
+    def outputs(
+        self, net: nn.Module, batch: dict[str, torch.Tensor], system: SystemConfig
+    ) -> Stages:
+        """Run ``net`` on a batch; the reconstruction pair."""
+        return {"recon": (net(batch["frame"]), batch["object"])}
+
+    def evaluating(self, model: nn.Module) -> AbstractContextManager:
+        """No state to set up for validation passes."""
+        return contextlib.nullcontext()
+
+
+def training_task(
+    config: ModelConfig | MultiWienerConfig | FourierNetConfig,
+) -> PatchTask | FrameTask:
+    """The task that trains the model ``config`` describes."""
+    if isinstance(config, ModelConfig):
+        return PatchTask(config)
+    if type(config) in FrameTask._MODELS:
+        return FrameTask(config)
+    raise TypeError(f"no training task for a {type(config).__name__}")
