@@ -6,14 +6,17 @@ activations and (bounded) mask cache grow. :func:`model_footprint` measures both
 system's own sub-view size and at twice it (:func:`doubled_system`), with the architecture
 of a model file re-built for the larger system (the weights' values do not change the size).
 
-Peak memory is the rise of the process's peak resident set size (``VmHWM`` in
-``/proc/self/status``, reset through ``/proc/self/clear_refs``) over building the model and
-reconstructing one frame of uniform noise (no tile is empty, so none is skipped); ``None``
-where the peak cannot be reset (not Linux).
+Peak memory is the rise of the peak resident set size (``VmHWM`` in ``/proc/self/status``,
+reset through ``/proc/self/clear_refs``) over building the model and reconstructing one
+frame of uniform noise (no tile is empty, so none is skipped), measured in a fresh process
+so that memory an earlier computation left to the allocator is not silently reused;
+``None`` where the peak cannot be reset (not Linux).
 """
 
 from __future__ import annotations
 
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -95,12 +98,23 @@ def _build(architecture: str, config: Any, system: SystemConfig) -> tuple[nn.Mod
     return model, LearnedReconstructor(model, system)
 
 
-def _one_frame(architecture: str, config: Any, system: SystemConfig) -> tuple[int, float | None]:
+def _one_frame(
+    architecture: str, config: Any, system: SystemConfig, threads: int
+) -> tuple[int, float | None]:
+    import torch
+
+    torch.set_num_threads(threads)
     frame = np.random.default_rng(0).random(system.sensor_shape, dtype=np.float32)
     with PeakMemory() as memory:
         model, reconstructor = _build(architecture, config, system)
         reconstructor.reconstruct(frame)
     return sum(p.numel() for p in model.parameters()), memory.mib
+
+
+def _in_fresh_process(*args: Any) -> tuple[int, float | None]:
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=1, mp_context=context) as pool:
+        return pool.submit(_one_frame, *args).result()
 
 
 def model_footprint(weights: str | Path, system: SystemConfig) -> Footprint:
@@ -119,6 +133,9 @@ def model_footprint(weights: str | Path, system: SystemConfig) -> Footprint:
     architecture, config = meta["architecture"], meta["model_config"]
     if architecture not in ("SVCoDe", "MultiWienerNet", "SVFourierNet"):
         raise ValueError(f"{Path(weights).name}: no footprint for a {architecture}")
-    params, peak = _one_frame(architecture, config, system)
-    params_2s, peak_2s = _one_frame(architecture, config, doubled_system(system))
+    import torch
+
+    threads = torch.get_num_threads()
+    params, peak = _in_fresh_process(architecture, config, system, threads)
+    params_2s, peak_2s = _in_fresh_process(architecture, config, doubled_system(system), threads)
     return Footprint(params / 1e6, params_2s / 1e6, peak, peak_2s)
