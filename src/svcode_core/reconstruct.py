@@ -79,6 +79,23 @@ def resolve_device(device: str | torch.device) -> torch.device:
     return resolved
 
 
+def as_frame_stack(frames: Any) -> np.ndarray:
+    """A raw frame ``(H, W)`` or a stack ``(T, H, W)`` as a ``(T, H, W)`` array (a view
+    where possible); :class:`ValueError` for non-real values, other ranks, an empty stack."""
+    array = np.asarray(frames)
+    if array.dtype.kind not in "biuf":
+        raise ValueError(f"frames must hold real numbers, got dtype {array.dtype}")
+    if array.ndim not in (2, 3):
+        raise ValueError(
+            "expected a raw sensor frame (H×W) or a stack (T×H×W), "
+            f"got an array of shape {array.shape}"
+        )
+    stack = array[None] if array.ndim == 2 else array
+    if stack.shape[0] == 0:
+        raise ValueError("the frame stack is empty (0 frames)")
+    return stack
+
+
 def check_frame_shape(shape: tuple[int, ...], system: SystemConfig) -> None:
     """Raise :class:`ValueError` unless ``shape`` is the raw sensor size of ``system``."""
     expected = tuple(system.sensor_shape)
@@ -257,17 +274,7 @@ class Reconstructor:
     # ------------------------------------------------------------------ input
     def _check_input(self, frames: Any) -> np.ndarray:
         """The input as a ``(T, H, W)`` array (a view where possible), validated for shape."""
-        array = np.asarray(frames)
-        if array.dtype.kind not in "biuf":
-            raise ValueError(f"frames must hold real numbers, got dtype {array.dtype}")
-        if array.ndim not in (2, 3):
-            raise ValueError(
-                "expected a raw sensor frame (H×W) or a stack (T×H×W), "
-                f"got an array of shape {array.shape}"
-            )
-        stack = array[None] if array.ndim == 2 else array
-        if stack.shape[0] == 0:
-            raise ValueError("the frame stack is empty (0 frames)")
+        stack = as_frame_stack(frames)
         check_frame_shape(stack.shape[1:], self.system)
         return stack
 

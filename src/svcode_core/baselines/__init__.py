@@ -29,7 +29,12 @@ import torch
 from ..cm2 import CM2Operator
 from ..config import SystemConfig
 from ..geometry import pad_sensor_frame
-from ..reconstruct import ReconstructionResult, check_frame_shape, resolve_device
+from ..reconstruct import (
+    ReconstructionResult,
+    as_frame_stack,
+    check_frame_shape,
+    resolve_device,
+)
 from .admm import AdmmResult, AdmmSettings, LsvAdmm, settings_for
 from .deconv import ShiftInvariantDeconvolution
 
@@ -185,15 +190,8 @@ class BaselineReconstructor:
             Float32 reconstruction(s), the re-imaged lens views when asked, ``timings``
             with the ``total`` seconds; the tile counters are 0 (no tiling).
         """
-        array = np.asarray(frames)
-        if array.ndim not in (2, 3) or array.dtype.kind not in "biuf":
-            raise ValueError(
-                "expected a real raw sensor frame (H×W) or a stack (T×H×W), got an array of "
-                f"shape {array.shape} and dtype {array.dtype}"
-            )
-        stack = array[None] if array.ndim == 2 else array
-        if stack.shape[0] == 0:
-            raise ValueError("the frame stack is empty (0 frames)")
+        single = np.ndim(frames) == 2
+        stack = as_frame_stack(frames)
         start = time.perf_counter()
         recons, views, previous = [], [], None
         for index, frame in enumerate(stack):
@@ -205,7 +203,7 @@ class BaselineReconstructor:
                 views.append(lens.detach().to("cpu", torch.float32).numpy())
         recon = np.stack(recons)
         view_array = np.stack(views) if return_views else None
-        if array.ndim == 2:
+        if single:
             recon = recon[0]
             view_array = None if view_array is None else view_array[0]
         return ReconstructionResult(

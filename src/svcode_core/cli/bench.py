@@ -223,6 +223,17 @@ def model_label(weights: Path) -> str:
     return "SV-CoDe" + (f" (no {', no '.join(off)})" if off else "")
 
 
+def _score_reconstructor(row: Row, reconstructor: Any, scenes: list[Scene]) -> Row:
+    """Reconstruct every scene with ``reconstructor``; scores, times and peak into ``row``."""
+    with PeakMemory() as memory:
+        for scene in scenes:
+            start = time.perf_counter()
+            estimate = reconstructor.reconstruct(scene.raw).reconstruction
+            _score(row, scene, estimate, time.perf_counter() - start)
+    row.peak_memory_mib = memory.mib
+    return row
+
+
 def svcode_rows(
     weights: Path, system: SystemConfig, scenes: list[Scene], all_knobs: bool = True
 ) -> list[Row]:
@@ -249,13 +260,7 @@ def svcode_rows(
         rec.reconstruct(scenes[0].raw)  # warm-up: fills the mask cache, as in a recording
         label = ", ".join(f"{k} {v}" for k, v in knob.items())
         row = Row(method, label, knob, setup_seconds=time.perf_counter() - start)
-        with PeakMemory() as memory:
-            for scene in scenes:
-                start = time.perf_counter()
-                estimate = rec.reconstruct(scene.raw).reconstruction
-                _score(row, scene, estimate, time.perf_counter() - start)
-        row.peak_memory_mib = memory.mib
-        rows.append(row)
+        rows.append(_score_reconstructor(row, rec, scenes))
     rows[0].footprint = model_footprint(weights, system).to_dict()
     return rows
 
@@ -269,12 +274,7 @@ def learned_rows(weights: Path, system: SystemConfig, scenes: list[Scene]) -> li
     rec.reconstruct(scenes[0].raw)  # warm-up
     method = LEARNED_LABELS[type(rec.model).__name__]
     row = Row(method, "fp32", {"precision": "fp32"}, setup_seconds=time.perf_counter() - start)
-    with PeakMemory() as memory:
-        for scene in scenes:
-            start = time.perf_counter()
-            estimate = rec.reconstruct(scene.raw).reconstruction
-            _score(row, scene, estimate, time.perf_counter() - start)
-    row.peak_memory_mib = memory.mib
+    _score_reconstructor(row, rec, scenes)
     row.footprint = model_footprint(weights, system).to_dict()
     return [row]
 

@@ -21,7 +21,12 @@ from torch import nn
 
 from ..config import SystemConfig
 from ..geometry import pad_sensor_frame
-from ..reconstruct import ReconstructionResult, check_frame_shape, resolve_device
+from ..reconstruct import (
+    ReconstructionResult,
+    as_frame_stack,
+    check_frame_shape,
+    resolve_device,
+)
 
 __all__ = ["ARCHITECTURES", "LearnedReconstructor", "LearnedSpec"]
 
@@ -108,15 +113,8 @@ class LearnedReconstructor:
                 f"{type(self.model).__name__} reconstructs the object directly and has no "
                 "demixed views; use --method svcode (or a model-based baseline) for views"
             )
-        array = np.asarray(frames)
-        if array.ndim not in (2, 3) or array.dtype.kind not in "biuf":
-            raise ValueError(
-                "expected a real raw sensor frame (H×W) or a stack (T×H×W), got an array of "
-                f"shape {array.shape} and dtype {array.dtype}"
-            )
-        stack = array[None] if array.ndim == 2 else array
-        if stack.shape[0] == 0:
-            raise ValueError("the frame stack is empty (0 frames)")
+        single = np.ndim(frames) == 2
+        stack = as_frame_stack(frames)
         start = time.perf_counter()
         recons = []
         bf16 = self.precision == "bf16"
@@ -127,7 +125,7 @@ class LearnedReconstructor:
             recons.append(estimate.float().cpu().numpy())
         recon = np.stack(recons)
         return ReconstructionResult(
-            recon[0] if array.ndim == 2 else recon, None,
+            recon[0] if single else recon, None,
             timings={"total": time.perf_counter() - start},
         )  # fmt: skip
 
