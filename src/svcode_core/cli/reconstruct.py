@@ -169,7 +169,9 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"reconstructed {summary.computed} frame(s)"
         + (f" ({resumed} resumed from an earlier run)" if resumed else "")
-        + f" in {seconds:.2f} s; tiles run {summary.tiles_run}, skipped {summary.tiles_skipped}"
-        f" -> {args.out}"
+        + f" in {seconds:.2f} s"
+        + (f"; tiles run {summary.tiles_run}, skipped {summary.tiles_skipped}"
+           if summary.tiles_run + summary.tiles_skipped else "")
+        + f" -> {args.out}"
     )
     return 0
