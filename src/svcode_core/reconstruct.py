@@ -55,7 +55,7 @@ __all__ = [
     "resolve_device",
 ]
 
-DEFAULT_MASK_CACHE_BYTES = 1 << 28
+DEFAULT_MASK_CACHE_BYTES = 1 << 30
 PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}
 
 
@@ -189,9 +189,9 @@ class Reconstructor:
         ``k`` of the skip threshold ``dark_offset + k · noise_floor``.
     mask_cache_bytes : int
         Memory for frozen coordinate masks (:meth:`SVCoDe.cache_masks`), reused by every
-        tile and frame; 0 recomputes them for each batch. The default (256 MiB) holds most
-        of the ``cm2-mini`` model's masks; :meth:`SVCoDe.mask_field_bytes` tells what all
-        of them need.
+        tile and frame; 0 recomputes them for each batch. The default (1 GiB) holds all of
+        the bundled ``cm2-mini`` model's masks (640 MiB, :meth:`SVCoDe.mask_field_bytes`);
+        a smaller budget caches part of them (256 MiB: about 4× slower on ``cm2-mini``).
 
     Examples
     --------

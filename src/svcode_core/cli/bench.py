@@ -238,7 +238,7 @@ def svcode_rows(
     weights: Path, system: SystemConfig, scenes: list[Scene], all_knobs: bool = True
 ) -> list[Row]:
     """SV-CoDe rows over stride, mask cache, precision and skipping (or the default only)."""
-    from ..reconstruct import Reconstructor
+    from ..reconstruct import DEFAULT_MASK_CACHE_BYTES, Reconstructor
 
     patch = system.patch_size
     knobs = [
@@ -255,8 +255,8 @@ def svcode_rows(
         rec = Reconstructor.from_weights(
             weights, system, precision=knob["precision"], tile_size=patch,
             stride=knob["stride"], skip_empty=knob["skip"],
+            mask_cache_bytes=DEFAULT_MASK_CACHE_BYTES if knob["cache"] else 0,
         )  # fmt: skip
-        rec.model.cache_masks(knob["cache"])
         rec.reconstruct(scenes[0].raw)  # warm-up: fills the mask cache, as in a recording
         label = ", ".join(f"{k} {v}" for k, v in knob.items())
         row = Row(method, label, knob, setup_seconds=time.perf_counter() - start)

@@ -68,9 +68,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--no-skip", action="store_true", help="run every tile, also those without signal"
     )
-    parser.add_argument("--mask-cache", type=int, default=256, metavar="MIB",
+    parser.add_argument("--mask-cache", type=int, default=1024, metavar="MIB",
                         help="memory for frozen coordinate masks, 0 to recompute them "
-                        "(default: 256)")
+                        "(default: 1024; the bundled cm2-mini model needs 640)")
     parser.add_argument(
         "--workers",
         type=int,
