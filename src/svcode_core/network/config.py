@@ -5,24 +5,80 @@ from __future__ import annotations
 import dataclasses
 import json
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 from ..config import ConfigError
 
-__all__ = ["PE_SCHEMES", "ModelConfig"]
+__all__ = ["PE_SCHEMES", "BlockConfig", "ModelConfig", "check_int"]
 
 PE_SCHEMES = ("paper", "code")
 """Frequency schemes of the positional encoding: ``"paper"`` uses ``2^k π`` (k = 0..L-1),
 ``"code"`` (the published implementation) uses ``0.5 π · (1..L)``."""
 
-_BLOCK_LISTS = ("demix_enc_blocks", "demix_dec_blocks", "recon_enc_blocks", "recon_dec_blocks")
-
-
 OUTPUTS = ("sigmoid", "linear")
+
+_Config = TypeVar("_Config", bound="BlockConfig")
+
+
+class BlockConfig:
+    """JSON round trip of a frozen dataclass of network sizes (mixin).
+
+    The fields named in ``block_lists`` (blocks per U-Net level) are tuples, so the
+    configuration stays hashable; JSON gives lists, which are converted back.
+    Subclasses define ``validate``.
+    """
+
+    block_lists: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        for name in self.block_lists:  # JSON gives lists; keep the dataclass hashable
+            value = getattr(self, name)
+            if isinstance(value, list):
+                object.__setattr__(self, name, tuple(value))
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-JSON dictionary of every field."""
+        data = dataclasses.asdict(self)
+        for name in self.block_lists:
+            data[name] = list(data[name])
+        return data
+
+    def to_json(self) -> str:
+        """The configuration as an indented JSON string."""
+        return json.dumps(self.to_dict(), indent=2)
+
+    @classmethod
+    def from_dict(cls: type[_Config], data: dict[str, Any]) -> _Config:
+        """Build and validate a configuration; unknown fields and bad values name the field."""
+        if not isinstance(data, dict):
+            raise ConfigError(f"model: expected a JSON object, got {type(data).__name__}")
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - names)
+        if unknown:
+            raise ConfigError(f"model.{unknown[0]}: unknown field (known: {sorted(names)})")
+        return cls(**data).validate()
+
+    @classmethod
+    def from_json(cls: type[_Config], text: str) -> _Config:
+        """Parse a JSON string; see :meth:`from_dict`."""
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as err:
+            raise ConfigError(f"model: not valid JSON ({err})") from None
+        return cls.from_dict(data)
+
+
+def check_int(name: str, value: Any, minimum: int) -> None:
+    """Raise :class:`~svcode_core.config.ConfigError` unless ``value`` is an integer (not a
+    bool) of at least ``minimum``."""
+    if not isinstance(value, int) or isinstance(value, bool):
+        raise ConfigError(f"{name}: must be an integer, got {value!r}")
+    if value < minimum:
+        raise ConfigError(f"{name}: must be >= {minimum}, got {value}")
 
 
 @dataclass(frozen=True)
-class ModelConfig:
+class ModelConfig(BlockConfig):
     """Sizes and switches of the SV-CoDe network.
 
     Attributes
@@ -74,11 +130,8 @@ class ModelConfig:
     lens_specific_first_block: bool = True
     output: str = "sigmoid"
 
-    def __post_init__(self) -> None:
-        for name in _BLOCK_LISTS:  # JSON gives lists; keep the dataclass hashable
-            value = getattr(self, name)
-            if isinstance(value, list):
-                object.__setattr__(self, name, tuple(value))
+    block_lists = ("demix_enc_blocks", "demix_dec_blocks", "recon_enc_blocks",
+                   "recon_dec_blocks")  # fmt: skip
 
     # ------------------------------------------------------------------ presets
     @classmethod
@@ -120,15 +173,15 @@ class ModelConfig:
     def validate(self) -> ModelConfig:
         """Check every field; raise :class:`~svcode_core.config.ConfigError` naming it."""
         for name in ("width", "view_width", "pe_bands", "mlp_hidden"):
-            _check_int(name, getattr(self, name), minimum=1)
+            check_int(name, getattr(self, name), minimum=1)
         for name in ("demix_middle_blocks", "recon_middle_blocks"):
-            _check_int(name, getattr(self, name), minimum=0)
-        for name in _BLOCK_LISTS:
+            check_int(name, getattr(self, name), minimum=0)
+        for name in self.block_lists:
             value = getattr(self, name)
             if not isinstance(value, tuple) or not value:
                 raise ConfigError(f"{name}: must be a non-empty list of integers, got {value!r}")
             for item in value:
-                _check_int(name, item, minimum=0)
+                check_int(name, item, minimum=0)
         for stage in ("demix", "recon"):
             enc, dec = getattr(self, f"{stage}_enc_blocks"), getattr(self, f"{stage}_dec_blocks")
             if len(enc) != len(dec):
@@ -144,42 +197,3 @@ class ModelConfig:
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"{name}: must be true or false, got {getattr(self, name)!r}")
         return self
-
-    # --------------------------------------------------------------- JSON I/O
-    def to_dict(self) -> dict[str, Any]:
-        """Plain-JSON dictionary of every field."""
-        data = dataclasses.asdict(self)
-        for name in _BLOCK_LISTS:
-            data[name] = list(data[name])
-        return data
-
-    def to_json(self) -> str:
-        """The configuration as an indented JSON string."""
-        return json.dumps(self.to_dict(), indent=2)
-
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> ModelConfig:
-        """Build and validate a configuration; unknown fields and bad values name the field."""
-        if not isinstance(data, dict):
-            raise ConfigError(f"model: expected a JSON object, got {type(data).__name__}")
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(data) - names)
-        if unknown:
-            raise ConfigError(f"model.{unknown[0]}: unknown field (known: {sorted(names)})")
-        return cls(**data).validate()
-
-    @classmethod
-    def from_json(cls, text: str) -> ModelConfig:
-        """Parse a JSON string; see :meth:`from_dict`."""
-        try:
-            data = json.loads(text)
-        except json.JSONDecodeError as err:
-            raise ConfigError(f"model: not valid JSON ({err})") from None
-        return cls.from_dict(data)
-
-
-def _check_int(name: str, value: Any, minimum: int) -> None:
-    if not isinstance(value, int) or isinstance(value, bool):
-        raise ConfigError(f"{name}: must be an integer, got {value!r}")
-    if value < minimum:
-        raise ConfigError(f"{name}: must be >= {minimum}, got {value}")
