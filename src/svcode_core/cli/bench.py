@@ -314,13 +314,14 @@ def run_benchmark(
         return op, time.perf_counter() - begin
 
     rows: list[Row] = []
+    if {"admm", "deconvolution"} & set(methods):
+        op, setup = operator(ADMM_RANK)  # shared by both families
     if "admm" in methods:
-        op, setup = operator(ADMM_RANK)
         checkpoints = (10, 50) if quick else ADMM_CHECKPOINTS
         rows += admm_rows(op, scenes, checkpoints, f"K={ADMM_RANK}", setup)
         progress(f"LSV-ADMM K={ADMM_RANK} done ({time.perf_counter() - start:.0f} s)")
     if "deconvolution" in methods:
-        rows += deconvolution_rows(operator(ADMM_RANK)[0], scenes, quick)
+        rows += deconvolution_rows(op, scenes, quick)
         progress(f"Wiener / RL done ({time.perf_counter() - start:.0f} s)")
     if "admm" in methods and not quick:
         for rank in RANK_SWEEP:
