@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 from torch import nn
 
 from .config import SystemConfig
@@ -101,8 +102,6 @@ def _build(architecture: str, config: Any, system: SystemConfig) -> tuple[nn.Mod
 def _one_frame(
     architecture: str, config: Any, system: SystemConfig, threads: int
 ) -> tuple[int, float | None]:
-    import torch
-
     torch.set_num_threads(threads)
     frame = np.random.default_rng(0).random(system.sensor_shape, dtype=np.float32)
     with PeakMemory() as memory:
@@ -133,8 +132,6 @@ def model_footprint(weights: str | Path, system: SystemConfig) -> Footprint:
     architecture, config = meta["architecture"], meta["model_config"]
     if architecture not in ("SVCoDe", "MultiWienerNet", "SVFourierNet"):
         raise ValueError(f"{Path(weights).name}: no footprint for a {architecture}")
-    import torch
-
     threads = torch.get_num_threads()
     params, peak = _in_fresh_process(architecture, config, system, threads)
     params_2s, peak_2s = _in_fresh_process(architecture, config, doubled_system(system), threads)

@@ -96,6 +96,16 @@ def as_frame_stack(frames: Any) -> np.ndarray:
     return stack
 
 
+def finite_frame(frame: Any, index: int, dtype: type = np.float32) -> np.ndarray:
+    """``frame`` as a ``dtype`` array; :class:`ValueError` naming frame ``index`` and the
+    count if it holds NaN or Inf."""
+    values = np.asarray(frame, dtype=dtype)
+    bad = values.size - int(np.isfinite(values).sum())
+    if bad:
+        raise ValueError(f"frame {index} holds {bad} NaN or Inf values")
+    return values
+
+
 def check_frame_shape(shape: tuple[int, ...], system: SystemConfig) -> None:
     """Raise :class:`ValueError` unless ``shape`` is the raw sensor size of ``system``."""
     expected = tuple(system.sensor_shape)
@@ -280,10 +290,7 @@ class Reconstructor:
 
     def prepare(self, frame: np.ndarray, index: int = 0) -> np.ndarray:
         """One raw frame → its nine sub-views ``(9, S, S)`` float32 (checked, clipped at 0)."""
-        values = np.asarray(frame, dtype=np.float32)
-        bad = values.size - int(np.isfinite(values).sum())
-        if bad:
-            raise ValueError(f"frame {index} holds {bad} NaN or Inf values")
+        values = finite_frame(frame, index)
         values = np.maximum(values, 0.0)
         padded = pad_sensor_frame(torch.from_numpy(values), self.system)
         return np.ascontiguousarray(extract_sub_views(padded, self.system).numpy())

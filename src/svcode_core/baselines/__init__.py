@@ -33,6 +33,7 @@ from ..reconstruct import (
     ReconstructionResult,
     as_frame_stack,
     check_frame_shape,
+    finite_frame,
     resolve_device,
 )
 from .admm import AdmmResult, AdmmSettings, LsvAdmm, settings_for
@@ -163,10 +164,7 @@ class BaselineReconstructor:
             )
 
     def _padded(self, frame: np.ndarray, index: int) -> torch.Tensor:
-        values = np.asarray(frame, dtype=np.float64)
-        bad = values.size - int(np.isfinite(values).sum())
-        if bad:
-            raise ValueError(f"frame {index} holds {bad} NaN or Inf values")
+        values = finite_frame(frame, index, np.float64)
         lenses = self.operator.lenses
         tensor = torch.as_tensor(values, dtype=lenses.dtype, device=lenses.device)
         return pad_sensor_frame(tensor, self.system)

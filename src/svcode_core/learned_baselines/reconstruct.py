@@ -25,6 +25,7 @@ from ..reconstruct import (
     ReconstructionResult,
     as_frame_stack,
     check_frame_shape,
+    finite_frame,
     resolve_device,
 )
 
@@ -93,10 +94,7 @@ class LearnedReconstructor:
 
     def _padded(self, frame: np.ndarray, index: int) -> torch.Tensor:
         check_frame_shape(frame.shape, self.system)
-        values = np.asarray(frame, dtype=np.float32)
-        bad = values.size - int(np.isfinite(values).sum())
-        if bad:
-            raise ValueError(f"frame {index} holds {bad} NaN or Inf values")
+        values = finite_frame(frame, index)
         return pad_sensor_frame(torch.from_numpy(values).to(self.device), self.system)
 
     @torch.inference_mode()
