@@ -9,8 +9,29 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+from pathlib import Path
+
+from ..config import SystemConfig, available_presets, load_system
 
 COMMANDS = ("simulate", "reconstruct", "demo", "dataset", "train", "bench")
+
+
+def add_system_arguments(
+    parser: argparse.ArgumentParser,
+    default: str | None = "cm2-mini",
+    preset_help: str = "system preset (default: cm2-mini)",
+) -> None:
+    """``--preset NAME`` or ``--system FILE.json``, mutually exclusive."""
+    source = parser.add_mutually_exclusive_group()
+    source.add_argument("--preset", default=default, choices=available_presets(),
+                        help=preset_help)  # fmt: skip
+    source.add_argument("--system", type=Path, help="system JSON file instead of a preset")
+
+
+def chosen_system(args: argparse.Namespace) -> SystemConfig | None:
+    """The system of :func:`add_system_arguments`' options; ``None`` if neither is set."""
+    choice = args.system or args.preset
+    return load_system(choice) if choice else None
 
 
 def build_parser() -> argparse.ArgumentParser:

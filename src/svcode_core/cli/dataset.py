@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..config import available_presets, load_system
 from ..training import DataRecipe, generate_dataset
+from . import add_system_arguments, chosen_system
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -22,10 +22,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
             "finish an interrupted generation."
         ),
     )
-    source = parser.add_mutually_exclusive_group()
-    source.add_argument("--preset", default="cm2-mini", choices=available_presets(),
-                        help="system preset (default: cm2-mini)")
-    source.add_argument("--system", type=Path, help="system JSON file instead of a preset")
+    add_system_arguments(parser)
     parser.add_argument("--frames", type=int, required=True, help="number of frames N")
     parser.add_argument("--out", type=Path, required=True, help="dataset folder")
     parser.add_argument("--seed", type=int, default=0, help="seed of objects and split")
@@ -37,7 +34,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Generate (or finish) the dataset and print a summary."""
-    system = load_system(args.system if args.system else args.preset)
+    system = chosen_system(args)
     recipe = DataRecipe(frames=args.frames, seed=args.seed, val_fraction=args.val_fraction)
     data = generate_dataset(args.out, system, recipe, progress=not args.no_progress)
     print(f"{data}: simulation took {data.manifest['seconds']:.1f} s in all")

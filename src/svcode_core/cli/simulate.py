@@ -6,9 +6,9 @@ import argparse
 import time
 from pathlib import Path
 
-from ..config import available_presets, load_system
 from ..phantoms import KINDS, from_image, make_object
 from ..simulate import Simulator
+from . import add_system_arguments, chosen_system
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -21,10 +21,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
             "measurement.tif, views.tif, demixed.tif, object.tif and system.json to OUT."
         ),
     )
-    source = parser.add_mutually_exclusive_group()
-    source.add_argument("--preset", default="cm2-mini", choices=available_presets(),
-                        help="system preset (default: cm2-mini)")
-    source.add_argument("--system", type=Path, help="system JSON file instead of a preset")
+    add_system_arguments(parser)
     parser.add_argument("--object", default="mixed", metavar="{" + ",".join(KINDS) + ",PATH}",
                         help="phantom kind, or a 2-D TIFF/PNG to use as the object")
     parser.add_argument("--seed", type=int, default=0, help="seed of the phantom and the noise")
@@ -37,7 +34,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Simulate and write the files; print a one-line summary."""
-    system = load_system(args.system if args.system else args.preset)
+    system = chosen_system(args)
     size = system.sub_view_size
     if args.object in KINDS:
         obj = make_object(args.object, size, args.seed)

@@ -8,10 +8,10 @@ from pathlib import Path
 
 import torch
 
-from ..config import available_presets, load_system
 from ..learned_baselines import FourierNetConfig, MultiWienerConfig
 from ..network import ModelConfig
 from ..training import TrainConfig, Trainer, TrainingData, init_distributed, shutdown_distributed
+from . import add_system_arguments, chosen_system
 
 #: configuration class of each learned baseline (``--method``)
 BASELINE_CONFIGS = {"multiwiener": MultiWienerConfig, "fouriernet": FourierNetConfig}
@@ -39,10 +39,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
             "-m svcode_core.cli train ...`."
         ),
     )
-    source = parser.add_mutually_exclusive_group()
-    source.add_argument("--preset", choices=available_presets(),
-                        help="system preset; must match the dataset's (default: the dataset's)")
-    source.add_argument("--system", type=Path, help="system JSON file instead of a preset")
+    add_system_arguments(parser, default=None, preset_help="system preset; must match the "
+                         "dataset's (default: the dataset's)")  # fmt: skip
     parser.add_argument("--data", type=Path, required=True, help="dataset folder")
     parser.add_argument("--out", type=Path, required=True, help="run folder")
     parser.add_argument("--method", default="svcode", choices=METHODS,
@@ -113,11 +111,10 @@ def _config_file(spec: str, presets: str) -> Path:
 def run(args: argparse.Namespace) -> int:
     """Train (or resume) and print where the results are."""
     data = TrainingData(args.data)
-    if args.preset or args.system:
-        system = load_system(args.system if args.system else args.preset)
-        if system != data.system:
-            raise ValueError(f"the dataset {args.data} was simulated for system "
-                             f"{data.system.name!r}, which differs from {system.name!r}")
+    system = chosen_system(args)
+    if system is not None and system != data.system:
+        raise ValueError(f"the dataset {args.data} was simulated for system "
+                         f"{data.system.name!r}, which differs from {system.name!r}")
     config = TrainConfig(
         epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
         min_lr_ratio=args.min_lr_ratio, warmup_steps=args.warmup_steps, grad_clip=args.grad_clip,
