@@ -485,8 +485,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--system", default="cm2-mini", help="preset or system JSON")
     parser.add_argument("--weights", type=Path, help="trained SV-CoDe model for its rows")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
-    parser.add_argument("--methods", nargs="+", choices=METHOD_FAMILIES,
-                        default=list(METHOD_FAMILIES), help="method families to run (default: all)")
+    parser.add_argument("--methods", nargs="*", choices=METHOD_FAMILIES,
+                        default=list(METHOD_FAMILIES),
+                        help="method families to run (default: all; none: only the "
+                        "--ablations rows, e.g. with --merge)")  # fmt: skip
     parser.add_argument("--ablations", nargs="+", type=Path, default=[], metavar="WEIGHTS",
                         help="further SV-CoDe models (e.g. ablations), one row each at the "
                         "default knob")  # fmt: skip
