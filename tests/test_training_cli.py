@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import json
 
+import pytest
+import torch
+
 from svcode_core.cli import main
 from svcode_core.network import load_model
 from svcode_core.training import TrainingData
@@ -33,3 +36,38 @@ def test_dataset_then_train(tiny_system, tmp_path, capsys):
     # a preset that is not the dataset's system is refused
     assert main([*args, "--preset", "cm2-mini"]) == 2
     assert "differs from 'cm2-mini'" in capsys.readouterr().err
+
+
+def test_train_from_initial_weights(tiny_system, tmp_path, capsys):
+    from safetensors.torch import load_file
+
+    from svcode_core.network import ModelConfig, SVCoDe, save_model
+    from svcode_core.training import TrainConfig, Trainer
+
+    system_file = tiny_system.save(tmp_path / "tiny.json")
+    data = tmp_path / "data"
+    assert main(["dataset", "--system", str(system_file), "--frames", "2", "--out", str(data),
+                 "--seed", "1", "--val-fraction", "0.5", "--no-progress"]) == 0
+    config = ModelConfig(width=4, view_width=1, demix_enc_blocks=(1,), demix_dec_blocks=(1,),
+                         recon_enc_blocks=(1,), recon_dec_blocks=(1,), mlp_hidden=8, pe_bands=2)
+    torch.manual_seed(3)
+    weights = save_model(tmp_path / "start.safetensors", SVCoDe(config), tiny_system)
+    trainer = Trainer(TrainingData(data), tmp_path / "run", config, TrainConfig(epochs=1),
+                      init_weights=weights, progress=False)
+    stored = load_file(str(weights))
+    assert all(torch.equal(stored[k], v) for k, v in trainer.model.state_dict().items())
+    with pytest.raises(ValueError, match="another network configuration"):
+        Trainer(TrainingData(data), tmp_path / "run", config.replace(mlp_hidden=4),
+                TrainConfig(epochs=1), init_weights=weights)
+
+    args = ["train", "--data", str(data), "--out", str(tmp_path / "tuned"), "--epochs", "1",
+            "--init", str(weights), "--batch-size", "2", "--patches-per-epoch", "2",
+            "--val-patches", "2", "--device", "cpu", "--no-progress"]
+    assert main(args) == 0
+    tuned, _ = load_model(tmp_path / "tuned" / "best.safetensors", tiny_system)
+    assert tuned.model_config == config
+    assert main([*args, "--ablation", "no-pe"]) == 2
+    assert "leave out --model-config and --ablation" in capsys.readouterr().err
+    assert main([*args, "--method", "fouriernet"]) == 2
+    assert "not one for --method fouriernet" in capsys.readouterr().err
+

@@ -8,8 +8,10 @@ from pathlib import Path
 
 import torch
 
+from ..config import SystemConfig
 from ..learned_baselines import FourierNetConfig, MultiWienerConfig
-from ..network import ModelConfig
+from ..network import ModelConfig, read_model_metadata
+from ..pretrained import require_bundled_weights
 from ..training import TrainConfig, Trainer, TrainingData, init_distributed, shutdown_distributed
 from . import add_system_arguments, chosen_system
 
@@ -46,9 +48,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--method", default="svcode", choices=METHODS,
                         help="svcode (patch-wise), or a learned baseline trained on whole "
                         "frames: multiwiener (MultiWienerNet), fouriernet (SV-FourierNet)")
-    parser.add_argument("--model-config", default="mini", metavar="{mini,reference,FILE}",
+    parser.add_argument("--model-config", metavar="{mini,reference,FILE}",
                         help="network sizes: a preset name or a JSON file of the method's "
                         "configuration (default: mini; the baselines have mini only)")
+    parser.add_argument("--init", metavar="WEIGHTS",
+                        help="start from the weights of a model file, or 'pretrained' for the "
+                        "bundled model (fine-tuning); the network configuration is the file's")
     parser.add_argument("--ablation", default="none", choices=sorted(ABLATIONS),
                         help="switch off the coordinate gate or the positional encoding")
     parser.add_argument("--epochs", type=int, default=defaults.epochs)
@@ -101,6 +106,21 @@ def model_config_from(
     return config.replace(**ABLATIONS[ablation])
 
 
+def initial_weights(args: argparse.Namespace, system: SystemConfig) -> Path:
+    """The model file of ``--init`` (``pretrained``: the bundled model of ``system``),
+    checked against ``--method``; ``--model-config`` and ``--ablation`` must be left out."""
+    if args.model_config is not None or args.ablation != "none":
+        raise ValueError("--init takes the network configuration from the model file: "
+                         "leave out --model-config and --ablation")  # fmt: skip
+    path = require_bundled_weights(system) if args.init == "pretrained" else Path(args.init)
+    config = read_model_metadata(path)["model_config"]
+    expected = BASELINE_CONFIGS.get(args.method, ModelConfig)
+    if not isinstance(config, expected):
+        raise ValueError(f"--init {path} holds a {type(config).__name__} model, not one for "
+                         f"--method {args.method}")  # fmt: skip
+    return path
+
+
 def _config_file(spec: str, presets: str) -> Path:
     path = Path(spec)
     if not path.is_file():
@@ -126,9 +146,14 @@ def run(args: argparse.Namespace) -> int:
     if device.type == "cuda" and dist.active:
         device = torch.device("cuda", dist.local_rank)
     try:
-        model_config = model_config_from(args.model_config, args.ablation, args.method)
+        init = None if args.init is None else initial_weights(args, data.system)
+        if init is None:
+            model_config = model_config_from(args.model_config or "mini", args.ablation,
+                                             args.method)  # fmt: skip
+        else:
+            model_config = read_model_metadata(init)["model_config"]
         trainer = Trainer(data, args.out, model_config, config, device=device, dist=dist,
-                          progress=not args.no_progress)
+                          progress=not args.no_progress, init_weights=init)
         trainer.fit(resume=args.resume)
     finally:
         shutdown_distributed(dist)

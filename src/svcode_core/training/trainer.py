@@ -47,7 +47,7 @@ from torch.nn.parallel import DistributedDataParallel
 from tqdm.auto import tqdm
 
 from ..learned_baselines import FourierNetConfig, MultiWienerConfig
-from ..network import ModelConfig, save_model
+from ..network import ModelConfig, load_model, save_model
 from .dataset import TrainingData
 from .distributed import DistInfo, all_reduce_sum, barrier
 from .loss import joint_loss, psnr, ssim_per_sample
@@ -191,6 +191,10 @@ class Trainer:
         DistributedDataParallel when there are several processes.
     progress : bool
         Show a progress bar per epoch (rank 0 only).
+    init_weights : str or Path, optional
+        A model file to start from instead of a random initialisation (fine-tuning); its
+        architecture and network configuration must be ``model_config``'s. A resumed run
+        continues from its checkpoint instead.
 
     Examples
     --------
@@ -208,6 +212,7 @@ class Trainer:
         device: str | torch.device = "cpu",
         dist: DistInfo | None = None,
         progress: bool = True,
+        init_weights: str | Path | None = None,
     ) -> None:
         self.data, self.system = data, data.system
         self.config = config.validate()
@@ -221,7 +226,10 @@ class Trainer:
         self.task = training_task(self.model_config)
         self.stages = self.task.stages
         torch.manual_seed(derive_seed(config.seed, 4))
-        self.model = self.task.build(self.system).to(self.device)
+        self.model = self.task.build(self.system)
+        if init_weights is not None:
+            self._load_initial_weights(Path(init_weights))
+        self.model.to(self.device)
         self.net: torch.nn.Module = self.model
         if self.dist.active:
             ids = [self.device.index] if self.device.type == "cuda" else None
@@ -445,6 +453,17 @@ class Trainer:
             for key in ("weights", "state"):
                 (folder / previous[key]).unlink(missing_ok=True)
         return weights
+
+    def _load_initial_weights(self, path: Path) -> None:
+        source, _ = load_model(path)
+        if type(source) is not type(self.model) or source.model_config != self.model_config:
+            raise ValueError(f"{path}: a {type(source).__name__} model of another network "
+                             f"configuration than this run's {type(self.model).__name__}")
+        try:
+            self.model.load_state_dict(source.state_dict())
+        except RuntimeError as error:  # frame-sized filters of another system's size
+            raise ValueError(f"{path}: its weights do not fit this dataset's system: "
+                             f"{str(error).splitlines()[-1].strip()}") from error
 
     def _latest(self) -> dict[str, Any] | None:
         path = self.out / CHECKPOINTS / LATEST
