@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
-import json
-
 import pytest
 import torch
 
 from svcode_core.cli import main
-from svcode_core.network import load_model
+from svcode_core.network import ModelConfig, load_model
 from svcode_core.training import TrainingData
+
+TINY_MODEL = ModelConfig(width=4, view_width=1, demix_enc_blocks=(1,), demix_dec_blocks=(1,),
+                         recon_enc_blocks=(1,), recon_dec_blocks=(1,), mlp_hidden=8, pe_bands=2)
 
 
 def test_dataset_then_train(tiny_system, tmp_path, capsys):
@@ -20,9 +21,7 @@ def test_dataset_then_train(tiny_system, tmp_path, capsys):
     assert "3 frames of tiny" in capsys.readouterr().out
     assert len(TrainingData(data).val_frames) == 1
     model_file = tmp_path / "model.json"
-    model_file.write_text(json.dumps({
-        "width": 4, "view_width": 1, "demix_enc_blocks": [1], "demix_dec_blocks": [1],
-        "recon_enc_blocks": [1], "recon_dec_blocks": [1], "mlp_hidden": 8, "pe_bands": 2}))
+    model_file.write_text(TINY_MODEL.to_json())
     run = tmp_path / "run"
     args = ["train", "--data", str(data), "--out", str(run), "--epochs", "1",
             "--model-config", str(model_file), "--ablation", "no-pe", "--batch-size", "2",
@@ -41,15 +40,14 @@ def test_dataset_then_train(tiny_system, tmp_path, capsys):
 def test_train_from_initial_weights(tiny_system, tmp_path, capsys):
     from safetensors.torch import load_file
 
-    from svcode_core.network import ModelConfig, SVCoDe, save_model
+    from svcode_core.network import SVCoDe, save_model
     from svcode_core.training import TrainConfig, Trainer
 
     system_file = tiny_system.save(tmp_path / "tiny.json")
     data = tmp_path / "data"
     assert main(["dataset", "--system", str(system_file), "--frames", "2", "--out", str(data),
                  "--seed", "1", "--val-fraction", "0.5", "--no-progress"]) == 0
-    config = ModelConfig(width=4, view_width=1, demix_enc_blocks=(1,), demix_dec_blocks=(1,),
-                         recon_enc_blocks=(1,), recon_dec_blocks=(1,), mlp_hidden=8, pe_bands=2)
+    config = TINY_MODEL
     torch.manual_seed(3)
     weights = save_model(tmp_path / "start.safetensors", SVCoDe(config), tiny_system)
     trainer = Trainer(TrainingData(data), tmp_path / "run", config, TrainConfig(epochs=1),
@@ -70,4 +68,3 @@ def test_train_from_initial_weights(tiny_system, tmp_path, capsys):
     assert "leave out --model-config and --ablation" in capsys.readouterr().err
     assert main([*args, "--method", "fouriernet"]) == 2
     assert "not one for --method fouriernet" in capsys.readouterr().err
-

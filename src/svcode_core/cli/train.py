@@ -106,9 +106,12 @@ def model_config_from(
     return config.replace(**ABLATIONS[ablation])
 
 
-def initial_weights(args: argparse.Namespace, system: SystemConfig) -> Path:
-    """The model file of ``--init`` (``pretrained``: the bundled model of ``system``),
-    checked against ``--method``; ``--model-config`` and ``--ablation`` must be left out."""
+def initial_weights(
+    args: argparse.Namespace, system: SystemConfig
+) -> tuple[Path, ModelConfig | MultiWienerConfig | FourierNetConfig]:
+    """The model file of ``--init`` (``pretrained``: the bundled model of ``system``) and
+    its network configuration, checked against ``--method``; ``--model-config`` and
+    ``--ablation`` must be left out."""
     if args.model_config is not None or args.ablation != "none":
         raise ValueError("--init takes the network configuration from the model file: "
                          "leave out --model-config and --ablation")  # fmt: skip
@@ -118,7 +121,7 @@ def initial_weights(args: argparse.Namespace, system: SystemConfig) -> Path:
     if not isinstance(config, expected):
         raise ValueError(f"--init {path} holds a {type(config).__name__} model, not one for "
                          f"--method {args.method}")  # fmt: skip
-    return path
+    return path, config
 
 
 def _config_file(spec: str, presets: str) -> Path:
@@ -146,12 +149,12 @@ def run(args: argparse.Namespace) -> int:
     if device.type == "cuda" and dist.active:
         device = torch.device("cuda", dist.local_rank)
     try:
-        init = None if args.init is None else initial_weights(args, data.system)
-        if init is None:
+        init = None
+        if args.init is None:
             model_config = model_config_from(args.model_config or "mini", args.ablation,
                                              args.method)  # fmt: skip
         else:
-            model_config = read_model_metadata(init)["model_config"]
+            init, model_config = initial_weights(args, data.system)
         trainer = Trainer(data, args.out, model_config, config, device=device, dist=dist,
                           progress=not args.no_progress, init_weights=init)
         trainer.fit(resume=args.resume)
