@@ -115,6 +115,8 @@ def build(
 #: glibc's allocator setting that makes every allocation above 64 KiB its own mapping,
 #: returned to the system when freed: resident memory then follows the bytes in use
 FIXED_MMAP = {"MALLOC_MMAP_THRESHOLD_": "65536"}
+#: the groups of rows of :func:`memory_scaling`, in the order of the report's table
+MEMORY_GROUPS = ("default", "fixed_mmap", "cached", "long_run")
 
 
 def child_memory(size: int, cache_bytes: int, min_batches: int = 0) -> dict:
@@ -169,15 +171,18 @@ def _child(size: int, cache: int, fixed_mmap: bool = False, min_batches: int = 0
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def memory_scaling(base: int) -> list[dict]:
-    """Rows at S, 2S, 4S: default allocator and fixed mmap threshold without the mask
-    cache, the default allocator with the cache at its default budget, and S run for as
-    many batches as 4S."""
+def memory_scaling(base: int) -> dict:
+    """Rows at S, 2S, 4S without the mask cache under the default allocator (``default``)
+    and with a fixed mmap threshold (``fixed_mmap``), with the cache at its default budget
+    (``cached``), and the row of S run for as many batches as 4S (``long_run``)."""
     sizes = (base, 2 * base, 4 * base)
-    rows = [_child(size, 0, fixed) for fixed in (False, True) for size in sizes]
-    rows += [_child(size, DEFAULT_MASK_CACHE_BYTES) for size in sizes]
-    rows.append(_child(base, 0, min_batches=rows[2]["batches"]))
-    return rows
+    default = [_child(size, 0) for size in sizes]
+    return {
+        "default": default,
+        "fixed_mmap": [_child(size, 0, fixed_mmap=True) for size in sizes],
+        "cached": [_child(size, DEFAULT_MASK_CACHE_BYTES) for size in sizes],
+        "long_run": _child(base, 0, min_batches=default[-1]["batches"]),
+    }
 
 
 def _psnr(x: np.ndarray, ref: np.ndarray) -> float:
@@ -266,7 +271,9 @@ def to_markdown(report: dict) -> str:
         "| whole call (MiB) | frame arrays (MiB) | s / frame |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
-    for row in report["memory"]:
+    memory = report["memory"]
+    default, fixed, cached, long_run = (memory[key] for key in MEMORY_GROUPS)
+    for row in [*default, *fixed, *cached, long_run]:
         allocator = "fixed mmap" if row["fixed_mmap"] else "default"
         lines.append(
             f"| {row['sub_view_size']} | {allocator} | {row['mask_cache_mib']:.0f} | "
@@ -274,8 +281,6 @@ def to_markdown(report: dict) -> str:
             f"{row['call_memory_mib']:.1f} | {row['frame_arrays_mib']:.1f} | "
             f"{row['seconds_per_frame']:.3f} |"
         )
-    memory = report["memory"]
-    default, fixed, cached, long_run = memory[0:3], memory[3:6], memory[6:9], memory[9]
 
     def spread(rows: list[dict]) -> str:
         mib = [row["tiling_memory_mib"] for row in rows]
