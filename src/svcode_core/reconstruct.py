@@ -52,10 +52,12 @@ __all__ = [
     "ReconstructionResult",
     "Reconstructor",
     "check_frame_shape",
+    "plan_tiles",
     "resolve_device",
 ]
 
 DEFAULT_MASK_CACHE_BYTES = 1 << 30
+DEFAULT_TILE_MEMORY_BYTES = 1 << 30
 PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}
 
 
@@ -120,6 +122,58 @@ def check_frame_shape(shape: tuple[int, ...], system: SystemConfig) -> None:
         f"{expected[0]}×{expected[1]}{hint}; check that the system configuration "
         "(--system, or the one stored with the data) matches the input"
     )
+
+
+def plan_tiles(
+    model: torch.nn.Module,
+    sub_view_size: int,
+    memory_bytes: int = DEFAULT_TILE_MEMORY_BYTES,
+    dtype: torch.dtype = torch.float32,
+) -> tuple[int, int, int]:
+    """Tile side, stride and batch for a model and a sub-view size within a memory budget.
+
+    The whole sub-view is one tile when its working memory
+    (:meth:`~svcode_core.network.SVCoDe.working_bytes_per_pixel`) fits in
+    ``memory_bytes``: nothing is computed twice and there are no seams. Otherwise the
+    tile is the largest multiple of the model stride that fits, and tiles overlap by the
+    model's receptive radius (rounded up to the stride, at most half a tile), so every
+    pixel is computed about ``(P / (P - overlap))²`` times instead of 4 times at stride
+    ``P / 2``; as many tiles as fit run in one batch.
+
+    Parameters
+    ----------
+    model : torch.nn.Module
+        An SV-CoDe model (with ``stride``, ``working_bytes_per_pixel`` and
+        ``receptive_radius``).
+    sub_view_size : int
+        ``S``.
+    memory_bytes : int
+        Working-memory budget of one batch.
+    dtype : torch.dtype
+        Compute dtype.
+
+    Returns
+    -------
+    tuple of int
+        ``(tile, stride, batch)``.
+
+    Examples
+    --------
+    >>> from svcode_core.network import ModelConfig, SVCoDe
+    >>> plan_tiles(SVCoDe(ModelConfig.mini()), 384)
+    (384, 384, 1)
+    >>> plan_tiles(SVCoDe(ModelConfig.reference()), 2400)
+    (400, 272, 1)
+    """
+    step, per_pixel = model.stride, model.working_bytes_per_pixel(dtype)
+    padded = math.ceil(sub_view_size / step) * step
+    if padded**2 * per_pixel <= memory_bytes:
+        return sub_view_size, sub_view_size, 1
+    side = max(step, math.isqrt(memory_bytes // per_pixel) // step * step)
+    side = min(side, sub_view_size)
+    overlap = min(math.ceil(model.receptive_radius() / step) * step, side // 2)
+    batch = max(1, memory_bytes // (side**2 * per_pixel))
+    return side, max(side - overlap, 1), batch
 
 
 @dataclass(frozen=True)
@@ -188,11 +242,13 @@ class Reconstructor:
         ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or ``"mps"``.
     precision : {"fp32", "bf16", "fp16"}
     tile_size : int, optional
-        Tile side ``P``; default ``system.patch_size``.
+        Tile side ``P``. Default: :func:`plan_tiles` within ``tile_memory_bytes`` (the
+        whole sub-view when it fits) for an SV-CoDe model, else ``system.patch_size``.
     stride : int, optional
-        Default ``system.patch_stride`` when ``tile_size`` is not given, else ``tile_size // 2``.
-    batch_size : int
-        Tiles per model call.
+        Default: the planned stride with the planned tile, ``system.patch_stride`` with
+        the system's patch size, else ``tile_size // 2``.
+    batch_size : int, optional
+        Tiles per model call; default planned (8 with the system's patch size).
     skip_empty : bool
         Skip tiles without signal (see :mod:`svcode_core.tiling`).
     skip_factor : float
@@ -202,6 +258,9 @@ class Reconstructor:
         tile and frame; 0 recomputes them for each batch. The default (1 GiB) holds all of
         the bundled ``cm2-mini`` model's masks (640 MiB, :meth:`SVCoDe.mask_field_bytes`);
         a smaller budget caches part of them (256 MiB: about 4× slower on ``cm2-mini``).
+        Models whose masks sit on a lattice (``ModelConfig.mask_spacing``) need no cache.
+    tile_memory_bytes : int
+        Working-memory budget of one batch of tiles for the default tiling.
 
     Examples
     --------
@@ -219,10 +278,11 @@ class Reconstructor:
         precision: str = "fp32",
         tile_size: int | None = None,
         stride: int | None = None,
-        batch_size: int = 8,
+        batch_size: int | None = None,
         skip_empty: bool = True,
         skip_factor: float = DEFAULT_SKIP_FACTOR,
         mask_cache_bytes: int = DEFAULT_MASK_CACHE_BYTES,
+        tile_memory_bytes: int = DEFAULT_TILE_MEMORY_BYTES,
     ) -> None:
         if not isinstance(system, SystemConfig):
             raise TypeError(f"system must be a SystemConfig, got {type(system).__name__}")
@@ -233,12 +293,19 @@ class Reconstructor:
         if precision == "fp16" and self.device.type == "cpu":
             raise ValueError("precision: fp16 is not supported on the CPU; use bf16 or fp32")
         self.precision = precision
-        if tile_size is None:
+        planned_batch = 8
+        if tile_size is None and hasattr(model, "working_bytes_per_pixel"):
+            dtype = PRECISIONS[precision]
+            tile_size, planned, planned_batch = plan_tiles(
+                model, system.sub_view_size, tile_memory_bytes, dtype)
+            stride = planned if stride is None else stride
+        elif tile_size is None:
             tile_size = system.patch_size
             stride = system.patch_stride if stride is None else stride
         elif stride is None:
             stride = max(tile_size // 2, 1)
         self.grid = TileGrid(system.sub_view_size, tile_size, stride)
+        batch_size = planned_batch if batch_size is None else batch_size
         if not isinstance(batch_size, int) or batch_size < 1:
             raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
         self.batch_size = batch_size

@@ -62,9 +62,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="svcode: fp32, bf16, fp16; model-based baselines: fp32, fp64; learned "
         "baselines: fp32, bf16 (default: fp32)",
     )
-    parser.add_argument("--tile", type=int, help="tile size P (default: the system's patch size)")
-    parser.add_argument("--stride", type=int, help="tile stride (default: P/2)")
-    parser.add_argument("--batch-size", type=int, default=8, help="tiles per model call")
+    parser.add_argument("--tile", type=int, help="tile size P (default: planned within 1 GiB: "
+                        "the whole sub-view when it fits)")
+    parser.add_argument("--stride", type=int, help="tile stride (default: planned; P/2 with "
+                        "--tile)")
+    parser.add_argument("--batch-size", type=int, help="tiles per model call (default: planned)")
     parser.add_argument(
         "--no-skip", action="store_true", help="run every tile, also those without signal"
     )

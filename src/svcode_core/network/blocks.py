@@ -52,11 +52,12 @@ class CoDeBlock(nn.Module):
     ``x + β·conv3(SCA(SimpleGate(conv2(conv1(LN(x))))))``, then
     ``y + γ·conv5(SimpleGate(conv4(LN(y))))``; β and γ start at zero.
 
-    With cached masks (no gradient) the block runs on *folded* masks
-    (:meth:`folded_masks`): the two halves of the conv2 and conv4 masks meet in a
-    SimpleGate, ``(Ma⊙a)⊙(Mb⊙b) = (Ma⊙Mb)⊙(a⊙b)``, so each pair becomes one mask of ``c``
-    channels applied after the gate, and β and γ scale the conv3 and conv5 masks, whose
-    products are then added to the residual in one ``addcmul``.
+    With coordinate masks the block runs on *folded* masks (:meth:`folded_masks`): the
+    two halves of the conv2 and conv4 masks meet in a SimpleGate,
+    ``(Ma⊙a)⊙(Mb⊙b) = (Ma⊙Mb)⊙(a⊙b)``, so each pair becomes one mask of ``c`` channels
+    applied after the gate, and β and γ scale the conv3 and conv5 masks, whose products
+    are then added to the residual in one ``addcmul``. On a mask lattice
+    (``ModelConfig.mask_spacing``) the folded masks are what is interpolated.
 
     Parameters
     ----------
@@ -93,13 +94,18 @@ class CoDeBlock(nn.Module):
         self.cache_name = ""  # set by the owning model: the block's key in the mask cache
 
     def forward(self, x: torch.Tensor, grid: CoordGrid | None) -> torch.Tensor:
-        if grid is not None and self.conv1.mlp is not None and grid.cached:
-            return self._forward_cached(x, grid)
-        z = self.conv2(self.conv1(self.norm1(x), grid), grid)
-        z = self.conv3(self.sca(self.gate(z)), grid)
-        y = x + self.beta * z
-        z = self.conv5(self.gate(self.conv4(self.norm2(y), grid)), grid)
-        return y + self.gamma * z
+        if grid is None or self.conv1.mlp is None:
+            z = self.conv2(self.conv1(self.norm1(x), grid), grid)
+            z = self.conv3(self.sca(self.gate(z)), grid)
+            y = x + self.beta * z
+            z = self.conv5(self.gate(self.conv4(self.norm2(y), grid)), grid)
+            return y + self.gamma * z
+        m1, m2, m3, m4, m5 = zip(*self._tile_masks(x, grid), strict=True)
+        z = _multiply(self.conv1.conv(self.norm1(x)), m1)
+        z = _multiply(self.gate(self.conv2.conv(z)), m2)
+        y = _add_product(x, m3, self.conv3.conv(self.sca(z)))
+        z = _multiply(self.gate(self.conv4.conv(self.norm2(y))), m4)
+        return _add_product(y, m5, self.conv5.conv(z))
 
     def folded_masks(
         self, enc_row: torch.Tensor, enc_col: torch.Tensor
@@ -123,18 +129,18 @@ class CoDeBlock(nn.Module):
             self.conv5.masks(enc_row, enc_col) * self.gamma.view(c, 1, 1),
         )
 
-    def _forward_cached(self, x: torch.Tensor, grid: CoordGrid) -> torch.Tensor:
+    def _tile_masks(self, x: torch.Tensor, grid: CoordGrid) -> list[tuple[torch.Tensor, ...]]:
+        """Per tile, the folded masks ``(lenses, C, h, w)`` in the compute dtype: from the
+        cache, or computed (at the pixels, or at the lattice nodes and interpolated)."""
         c, mlp = self.beta.shape[1], self.conv1.mlp
         dtype = _mask_dtype(x.device, mlp.w_out.dtype)
-        shapes = [(mlp.lenses, 2 * c)] + [(mlp.lenses, c)] * 4
-        pixel_bytes = mlp.lenses * (mlp.w_out.shape[-1] + 8 * c) * mlp.w_out.element_size()
-        masks = tile_masks(grid, self.cache_name, self.folded_masks, shapes, pixel_bytes, dtype)
-        m1, m2, m3, m4, m5 = zip(*masks, strict=True)
-        z = _multiply(self.conv1.conv(self.norm1(x)), m1)
-        z = _multiply(self.gate(self.conv2.conv(z)), m2)
-        y = _add_product(x, m3, self.conv3.conv(self.sca(z)))
-        z = _multiply(self.gate(self.conv4.conv(self.norm2(y))), m4)
-        return _add_product(y, m5, self.conv5.conv(z))
+        if grid.cached:
+            shapes = [(mlp.lenses, 2 * c)] + [(mlp.lenses, c)] * 4
+            pixel_bytes = mlp.lenses * (mlp.w_out.shape[-1] + 8 * c) * mlp.w_out.element_size()
+            return tile_masks(grid, self.cache_name, self.folded_masks, shapes, pixel_bytes,
+                              dtype)  # fmt: skip
+        tiles = grid.tile_masks(self.folded_masks(grid.enc_row, grid.enc_col))
+        return [tuple(m.to(dtype) for m in masks) for masks in tiles]
 
 
 def _mask_dtype(device: torch.device, default: torch.dtype) -> torch.dtype:
@@ -150,7 +156,10 @@ def _tiles(t: torch.Tensor, batch: int) -> torch.Tensor:
 
 
 def _multiply(y: torch.Tensor, masks: tuple[torch.Tensor, ...]) -> torch.Tensor:
-    """``y`` (a temporary) multiplied in place by the mask of each tile."""
+    """``y`` multiplied by the mask of each tile: in place (``y`` is a temporary) without
+    gradient, out of place (the product needs ``y``) with it."""
+    if torch.is_grad_enabled():
+        return (_tiles(y, len(masks)) * torch.stack(masks)).view_as(y)
     for tile, mask in zip(_tiles(y, len(masks)), masks, strict=True):
         tile.mul_(mask)
     return y
@@ -160,9 +169,11 @@ def _add_product(
     x: torch.Tensor, masks: tuple[torch.Tensor, ...], z: torch.Tensor
 ) -> torch.Tensor:
     """``x + mask ⊙ z`` tile by tile, in one pass per tile."""
+    batch = len(masks)
+    if torch.is_grad_enabled():
+        return (_tiles(x, batch) + torch.stack(masks) * _tiles(z, batch)).view_as(x)
     dtype = torch.promote_types(torch.promote_types(x.dtype, z.dtype), masks[0].dtype)
     out = torch.empty_like(x, dtype=dtype)
-    batch = len(masks)
     for o, xb, m, zb in zip(_tiles(out, batch), _tiles(x, batch), masks, _tiles(z, batch),
                             strict=True):
         torch.addcmul(xb, m, zb, out=o)

@@ -106,6 +106,14 @@ class ModelConfig(BlockConfig):
         ``False`` feeds the raw ``(v, u)`` to the MLPs.
     lens_specific_first_block : bool
         The first (view-dependent) block has one MLP per lens; ``False`` shares one.
+    mask_spacing : int
+        ``0`` evaluates the mask MLPs at every pixel (exact). ``p > 0`` evaluates them on a
+        lattice of nodes ``p`` level-0 pixels apart and interpolates bilinearly to the
+        pixels (:mod:`.lattice`): the masks then cost about as much as one extra
+        element-wise pass, and no mask cache is needed. Model files written before this
+        option existed load with ``0``, as they were trained.
+        :func:`~.lattice.mask_spacing_for` gives the largest spacing whose encoding
+        interpolation error is within a tolerance.
     output : {"sigmoid", "linear"}
         Output activation of both stages. ``"sigmoid"`` is the published design.
         ``"linear"`` leaves the last convolution unbounded while training and clamps it
@@ -129,6 +137,7 @@ class ModelConfig(BlockConfig):
     positional_encoding: bool = True
     lens_specific_first_block: bool = True
     output: str = "sigmoid"
+    mask_spacing: int = 0
 
     block_lists = ("demix_enc_blocks", "demix_dec_blocks", "recon_enc_blocks",
                    "recon_dec_blocks")  # fmt: skip
@@ -136,13 +145,15 @@ class ModelConfig(BlockConfig):
     # ------------------------------------------------------------------ presets
     @classmethod
     def reference(cls) -> ModelConfig:
-        """Sizes of the published model (width 32, Demix 4 levels, Recon 3 levels)."""
-        return cls().validate()
+        """Sizes of the published model (width 32, Demix 4 levels, Recon 3 levels), masks on
+        a 48-pixel lattice (within 1 % encoding interpolation error at ``S = 2400``)."""
+        return cls(mask_spacing=48).validate()
 
     @classmethod
     def mini(cls) -> ModelConfig:
         """A small model for the ``cm2-mini`` CPU preset (width 16, 3 + 2 levels, linear
-        outputs clamped at zero)."""
+        outputs clamped at zero, masks on an 8-pixel lattice: within 1 % encoding
+        interpolation error at ``S = 384``)."""
         return cls(
             width=16,
             view_width=4,
@@ -152,6 +163,7 @@ class ModelConfig(BlockConfig):
             recon_dec_blocks=(1, 1),
             mlp_hidden=32,
             output="linear",
+            mask_spacing=8,
         ).validate()
 
     # ------------------------------------------------------------------ derived
@@ -174,7 +186,7 @@ class ModelConfig(BlockConfig):
         """Check every field; raise :class:`~svcode_core.config.ConfigError` naming it."""
         for name in ("width", "view_width", "pe_bands", "mlp_hidden"):
             check_int(name, getattr(self, name), minimum=1)
-        for name in ("demix_middle_blocks", "recon_middle_blocks"):
+        for name in ("demix_middle_blocks", "recon_middle_blocks", "mask_spacing"):
             check_int(name, getattr(self, name), minimum=0)
         for name in self.block_lists:
             value = getattr(self, name)

@@ -29,6 +29,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from .lattice import LatticeAxis, interpolate
+
 __all__ = ["CoordGate", "CoordGrid", "CoordMLP", "MaskCache", "MaskField", "tile_masks"]
 
 FIELD_CHUNK_BYTES = 1 << 26
@@ -220,8 +222,10 @@ class CoordGrid:
     Attributes
     ----------
     enc_row, enc_col : torch.Tensor
-        Positional encodings ``(B, h, E)`` and ``(B, w, E)``, or ``(U, h, E)`` and
-        ``(U, w, E)`` for the ``U`` distinct tile origins when ``tiles`` is set.
+        Positional encodings of the points where the mask MLPs are evaluated: the tile
+        pixels ``(B, h, E)`` and ``(B, w, E)``, or the lattice nodes of each tile when
+        ``lattice`` is set; ``U`` rows instead of ``B`` for the ``U`` distinct tile
+        origins when ``tiles`` is set.
     cache : MaskCache or None
         Where masks are looked up; ``None`` computes them every time.
     field : MaskField or None
@@ -229,6 +233,9 @@ class CoordGrid:
     tiles : torch.Tensor or None
         ``(B,)`` index of each tile's origin among the encodings: tiles at the same
         origin share one mask computation (set only on the uncached path).
+    lattice : tuple of LatticeAxis or None
+        ``(rows, cols)``: the encodings are lattice nodes, interpolated to the tile pixels
+        (:mod:`.lattice`).
     """
 
     enc_row: torch.Tensor
@@ -236,6 +243,7 @@ class CoordGrid:
     cache: MaskCache | None = None
     field: MaskField | None = None
     tiles: torch.Tensor | None = None
+    lattice: tuple[LatticeAxis, LatticeAxis] | None = None
 
     @property
     def batch(self) -> int:
@@ -246,6 +254,18 @@ class CoordGrid:
     def cached(self) -> bool:
         """Whether masks come from the cache (a cache is set and no gradient is needed)."""
         return self.cache is not None and not torch.is_grad_enabled()
+
+    def tile_masks(self, masks: Masks) -> list[Masks]:
+        """Per tile, its masks ``(lenses, C, h, w)`` from masks ``(U, lenses, C, ., .)``
+        computed at ``enc_row`` and ``enc_col``: interpolated from the lattice nodes when
+        ``lattice`` is set, and repeated for tiles that share an origin."""
+        if self.lattice is None:
+            per_origin = list(zip(*masks, strict=True))
+        else:
+            per_origin = list(zip(*(interpolate(m, *self.lattice) for m in masks), strict=True))
+        if self.tiles is None:
+            return per_origin
+        return [per_origin[u] for u in self.tiles.tolist()]
 
 
 Masks = tuple[torch.Tensor, ...]

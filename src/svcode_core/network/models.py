@@ -25,6 +25,7 @@ from .blocks import CoDeBlock, ViewFusion
 from .config import ModelConfig
 from .coordgate import CoordGate, CoordGrid, MaskCache, MaskField
 from .encoding import encoding_size, level_coordinates, positional_encoding
+from .lattice import interpolate, lattice_axis
 
 __all__ = ["DemixNet", "MaskLayer", "ReconNet", "SVCoDe", "UNet"]
 
@@ -259,6 +260,34 @@ class _MaskedModel(nn.Module):
     def _levels(self) -> int:
         return max(stage.levels for stage in self._stages())
 
+    @property
+    def stride(self) -> int:
+        """The model stride ``2**levels``: tile sides are padded to a multiple of it."""
+        return 2 ** self._levels()
+
+    def working_bytes_per_pixel(self, dtype: torch.dtype = torch.float32) -> int:
+        """An upper estimate of the inference working memory per tile pixel.
+
+        ``16 · (9 · view_width + width)`` values of ``dtype``: the nine views' features
+        and the fused features with the temporaries of a block and the U-Net skips.
+        Measured peaks (float32, one tile): ``ModelConfig.mini()`` 2.1–2.6 kB per pixel
+        against 3.3 kB estimated; ``ModelConfig.reference()`` 4.7 kB against 6.7 kB.
+        """
+        config = self.model_config
+        return dtype.itemsize * 16 * (9 * config.view_width + config.width)
+
+    def receptive_radius(self) -> int:
+        """Level-0 pixels a tile's output depends on beyond its own pixels, through the
+        convolutions (each 3×3 depthwise convolution at level ``k`` reaches ``2^k``
+        pixels, each down- or up-sampling ``2^k``, the first and last 3×3 convolutions
+        one); channel attention averages over the whole tile and is not counted."""
+        radius = 0
+        for stage in self._stages():
+            radius += 2  # the stage's first and last 3x3 convolutions
+            radius += sum(2**level for _, _, level in stage.named_blocks())
+            radius += 2 * sum(2**level for level in range(stage.levels))
+        return radius
+
     def _weights_key(self) -> Hashable:
         params = [p for _, gate in self._gates.values() for p in gate.mlp.parameters()]
         params += [p for block, _ in self._masked_blocks for p in (block.beta, block.gamma)]
@@ -270,7 +299,8 @@ class _MaskedModel(nn.Module):
     ) -> list[CoordGrid | None]:
         if not self._gates:
             return [None] * (levels + 1)
-        cache = self._mask_cache
+        spacing = self.model_config.mask_spacing
+        cache = self._mask_cache if spacing == 0 else None  # lattice masks need no cache
         fields: list[MaskField | None] = [None] * (levels + 1)
         if cache is not None:
             cache.check_weights(self._weights_key())
@@ -282,13 +312,34 @@ class _MaskedModel(nn.Module):
             if len(distinct) == len(origins):
                 tiles = None
             else:  # tiles at one origin share their masks
-                origins, tiles = distinct, tiles.to(next(self.parameters()).device)
+                origins = distinct
+        if spacing:
+            return [self._lattice_grid(origins, sub_view_size, shape, level, tiles)
+                    for level in range(levels + 1)]  # fmt: skip
         rows = level_coordinates(origins[:, 0], shape[0], sub_view_size, levels)
         cols = level_coordinates(origins[:, 1], shape[1], sub_view_size, levels)
         return [
             CoordGrid(self._encode(r), self._encode(c), cache, field, tiles)
             for r, c, field in zip(rows, cols, fields, strict=True)
         ]
+
+    def _lattice_grid(
+        self,
+        origins: torch.Tensor,
+        sub_view_size: int,
+        shape: tuple[int, int],
+        level: int,
+        tiles: torch.Tensor | None,
+    ) -> CoordGrid:
+        """The lattice nodes of every tile at one level (see :mod:`.lattice`)."""
+        spacing = self.model_config.mask_spacing
+        axes = [
+            lattice_axis(origins[:, axis], shape[axis] // 2**level, level, spacing, sub_view_size)
+            for axis in (0, 1)
+        ]
+        (rows, row_axis), (cols, col_axis) = axes
+        return CoordGrid(self._encode(rows), self._encode(cols), tiles=tiles,
+                         lattice=(row_axis, col_axis))  # fmt: skip
 
     def _encode(self, coords: torch.Tensor) -> torch.Tensor:
         config, param = self.model_config, next(self.parameters())
@@ -362,7 +413,9 @@ class _MaskedModel(nn.Module):
         """One layer's mask ``M(r)`` over the whole ``S × S`` sub-view, on request.
 
         The MLP is evaluated at the full-resolution pixel coordinates (at a down-sampled
-        level the network samples the same function on the coarser grid).
+        level the network samples the same function on the coarser grid), or on the mask
+        lattice and interpolated (``ModelConfig.mask_spacing``). The conv2 and conv4
+        masks act as products of their two halves; each half is shown here.
 
         Parameters
         ----------
@@ -391,14 +444,21 @@ class _MaskedModel(nn.Module):
         if isinstance(channels, int):
             channels = slice(channels, channels + 1)
         config, param = self.model_config, gate.mlp.w_out
-        coords = torch.zeros(1, 2, dtype=torch.long)
-        axis = level_coordinates(coords[:, 0], sub_view_size, sub_view_size, 0)[0]
+        lens = min(lens, info.lenses - 1)
+        origin = torch.zeros(1, dtype=torch.long)
+        if config.mask_spacing:
+            nodes, lattice = lattice_axis(origin, sub_view_size, 0, config.mask_spacing,
+                                          sub_view_size)  # fmt: skip
+            enc = self._encode(nodes)
+            masks = gate.masks(enc, enc, channels)[:, lens : lens + 1]
+            return interpolate(masks, lattice, lattice)[0][0].float()
+        axis = level_coordinates(origin, sub_view_size, sub_view_size, 0)[0]
         enc = positional_encoding(axis, config.pe_bands, config.pe_scheme,
                                   config.positional_encoding, param.dtype).to(param.device)
         row_bytes = sub_view_size * param.shape[-1] * info.lenses * param.element_size()
         chunk = max(1, max_chunk_bytes // row_bytes)
         parts = [
-            gate.masks(enc[:, start : start + chunk], enc, channels)[0, min(lens, info.lenses - 1)]
+            gate.masks(enc[:, start : start + chunk], enc, channels)[0, lens]
             for start in range(0, sub_view_size, chunk)
         ]
         return torch.cat(parts, dim=1).float()

@@ -190,8 +190,8 @@ def load_model(
 def _read_header(path: Path) -> dict[str, Any]:
     size = path.stat().st_size
     with path.open("rb") as handle:
-        start = handle.read(8)
-        if start[:1] == b"\x80":
+        start = handle.read(9)  # a safetensors header is a JSON object: byte 8 is "{"
+        if start[:1] == b"\x80" and start[8:9] != b"{":
             raise ValueError(f"{path}: a Python pickle, refused (unpickling can run code); "
                              "convert it to safetensors in a trusted environment")
         if start[:4] == b"PK\x03\x04":
@@ -199,7 +199,8 @@ def _read_header(path: Path) -> dict[str, Any]:
                              "(it holds pickles); convert it to safetensors")
         if len(start) < 8:
             raise ValueError(f"{path}: truncated or empty ({size} bytes), not a safetensors file")
-        length = int.from_bytes(start, "little")
+        length = int.from_bytes(start[:8], "little")
+        handle.seek(8)
         if length > min(size - 8, _MAX_HEADER):
             raise ValueError(f"{path}: truncated or not a safetensors file (header of "
                              f"{length} bytes announced, file has {size} bytes)")

@@ -1,0 +1,197 @@
+"""The mask lattice: coordinate masks evaluated on coarse nodes and interpolated to pixels.
+
+With ``ModelConfig.mask_spacing = p > 0`` the mask MLPs are not evaluated at every pixel.
+At U-Net level ``k`` (pixels ``2^k`` level-0 pixels apart) the lattice nodes are the
+level-``k`` pixel centres of the sub-view grid at every ``p``-th level-0 pixel: node ``j``
+sits at level-0 position ``j·p + (2^k - 1)/2``. The masks of a tile pixel are the bilinear
+interpolation of the masks at the four surrounding nodes; a tile pixel ``i`` of a tile at
+origin ``o`` has the node coordinate ``u = (o + 2^k i) / p``. The lattice is global (it
+does not move with the tile), so overlapping tiles and a whole sub-view see the same masks
+and tiled and untiled outputs agree to float precision.
+
+Interpolation error: the MLPs see the positional encoding, whose fastest feature is
+``sin(π f t)`` with ``f`` the largest band frequency (units of π per normalised
+coordinate). Linear interpolation of ``sin(ω t)`` with node spacing ``Δ`` errs by at most
+``ω² Δ² / 8``; :func:`encoding_error_bound` gives that bound for a configuration and
+:func:`mask_spacing_for` the largest spacing within a tolerance.
+
+Two interpolation routes give the same values: when the level stride ``2^k`` divides both
+``p`` and every tile origin (the usual case: tile grids and training patches sit on
+multiples of the model stride) one bilinear up-sampling with aligned corners covers the
+tiles (fast); otherwise a dense separable interpolation matrix per tile does.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from .encoding import frequencies
+
+__all__ = ["LatticeAxis", "encoding_error_bound", "interpolate", "lattice_axis",
+           "mask_spacing_for"]
+
+
+@dataclass(frozen=True)
+class LatticeAxis:
+    """Where the pixels of a batch of tiles fall among the lattice nodes along one axis.
+
+    Attributes
+    ----------
+    position : torch.Tensor
+        ``(U, n)`` float64: node coordinate of every tile pixel, relative to the first node
+        of its tile (``0 <= position <= nodes - 1``).
+    nodes : int
+        Nodes per tile (the same for every tile of the batch).
+    upsample : int or None
+        Level pixels per node when the aligned route applies, else ``None``.
+    crops : tuple of int
+        Per tile, its first pixel in the aligned up-sampled grid (aligned route only).
+    """
+
+    position: torch.Tensor
+    nodes: int
+    upsample: int | None
+    crops: tuple[int, ...]
+
+
+def lattice_axis(
+    origins: torch.Tensor, length: int, level: int, spacing: int, size: int
+) -> tuple[torch.Tensor, LatticeAxis]:
+    """Node coordinates covering each tile along one axis, and where its pixels fall.
+
+    Parameters
+    ----------
+    origins : torch.Tensor
+        ``(U,)`` integer first level-0 pixel of each tile.
+    length : int
+        Tile pixels along the axis at this level.
+    level : int
+        U-Net level ``k``.
+    spacing : int
+        ``p``, level-0 pixels between nodes.
+    size : int
+        The sub-view size ``S`` (normalises the coordinates).
+
+    Returns
+    -------
+    coords : torch.Tensor
+        ``(U, nodes)`` float64 normalised coordinates of the nodes each tile needs.
+    axis : LatticeAxis
+
+    Examples
+    --------
+    >>> coords, axis = lattice_axis(torch.tensor([0, 16]), 32, 0, 8, 65)
+    >>> axis.nodes, axis.upsample, axis.crops
+    (5, 8, (0, 0))
+    >>> coords[0, :2].tolist()
+    [-1.0, -0.75]
+    """
+    step = 2**level
+    origins = origins.long().cpu()
+    first = torch.div(origins, spacing, rounding_mode="floor")
+    last = torch.div(origins + step * (length - 1), spacing, rounding_mode="floor") + 1
+    nodes = int((last - first).max()) + 1
+    index = first[:, None] + torch.arange(nodes)
+    coords = (2.0 * (index * spacing + (step - 1) / 2) / (size - 1) - 1.0).to(torch.float64)
+    pixels = origins[:, None] + step * torch.arange(length)
+    position = pixels.to(torch.float64) / spacing - first[:, None]
+    aligned = spacing % step == 0 and bool((origins % step == 0).all())
+    upsample = spacing // step if aligned else None
+    crops = tuple(((origins - first * spacing) // step).tolist()) if aligned else ()
+    return coords, LatticeAxis(position, nodes, upsample, crops)
+
+
+def interpolate(
+    masks: torch.Tensor, rows: LatticeAxis, cols: LatticeAxis
+) -> list[torch.Tensor]:
+    """Masks at the tile pixels from masks at the nodes.
+
+    Parameters
+    ----------
+    masks : torch.Tensor
+        ``(U, lenses, C, rows.nodes, cols.nodes)``.
+    rows, cols : LatticeAxis
+
+    Returns
+    -------
+    list of torch.Tensor
+        Per tile ``(lenses, C, h, w)``, channels-last (channels vary fastest).
+    """
+    tiles, lenses, channels = masks.shape[:3]
+    h, w = rows.position.shape[1], cols.position.shape[1]
+    if rows.upsample is not None and cols.upsample is not None:
+        size = ((rows.nodes - 1) * rows.upsample + 1, (cols.nodes - 1) * cols.upsample + 1)
+        flat = masks.reshape(tiles * lenses, channels, rows.nodes, cols.nodes)
+        # a copy of the (small) node masks with canonical channels-last strides: the
+        # up-sampling kernel takes its fast channels-last route only then (a batch of one
+        # with a non-canonical batch stride is treated as contiguous, ~20x slower)
+        flat = flat.clone(memory_format=torch.channels_last)
+        up = F.interpolate(flat, size=size, mode="bilinear", align_corners=True)
+        up = up.view(tiles, lenses, channels, *size)
+        return [
+            up[t, :, :, r : r + h, c : c + w]
+            for t, (r, c) in enumerate(zip(rows.crops, cols.crops, strict=True))
+        ]
+    weights_r = _hat_matrix(rows.position, rows.nodes).to(masks.dtype)
+    weights_c = _hat_matrix(cols.position, cols.nodes).to(masks.dtype)
+    out = torch.einsum("uhr,ulcrs,uws->ulhwc", weights_r, masks, weights_c)
+    return list(out.permute(0, 1, 4, 2, 3))
+
+
+def _hat_matrix(position: torch.Tensor, nodes: int) -> torch.Tensor:
+    """``(U, n, nodes)`` linear-interpolation weights (two per row) for ``position``."""
+    below = position.floor().clamp(max=nodes - 2).long()
+    frac = position - below
+    weights = torch.zeros(*position.shape, nodes, dtype=torch.float64)
+    weights.scatter_(-1, below.unsqueeze(-1), (1 - frac).unsqueeze(-1))
+    weights.scatter_(-1, (below + 1).unsqueeze(-1), frac.unsqueeze(-1))
+    return weights
+
+
+def encoding_error_bound(
+    spacing: int, sub_view_size: int, bands: int, scheme: str, enabled: bool = True
+) -> float:
+    """Bound on the linear-interpolation error of the encoding features: ``ω² Δ² / 8``.
+
+    ``Δ = 2 p / (S - 1)`` is the node spacing in normalised coordinates and ``ω = π f`` the
+    fastest band; without positional encoding the raw coordinate is linear and
+    interpolates exactly (0). ``spacing = 0`` (exact masks) gives 0.
+
+    Examples
+    --------
+    >>> round(encoding_error_bound(8, 384, 4, "code"), 4)
+    0.0086
+    """
+    if spacing == 0 or not enabled:
+        return 0.0
+    omega = math.pi * max(frequencies(bands, scheme))
+    delta = 2.0 * spacing / (sub_view_size - 1)
+    return omega**2 * delta**2 / 8.0
+
+
+def mask_spacing_for(
+    sub_view_size: int,
+    bands: int,
+    scheme: str,
+    levels: int,
+    tolerance: float = 1e-2,
+) -> int:
+    """The largest node spacing, a multiple of the model stride ``2**levels`` where
+    possible, whose :func:`encoding_error_bound` is within ``tolerance``; 0 (exact masks)
+    when even one pixel is too coarse.
+
+    Examples
+    --------
+    >>> mask_spacing_for(384, 4, "code", levels=3), mask_spacing_for(2400, 4, "code", levels=4)
+    (8, 48)
+    """
+    omega = math.pi * max(frequencies(bands, scheme))
+    largest = math.sqrt(8.0 * tolerance) / omega * (sub_view_size - 1) / 2.0
+    stride = 2**levels
+    if largest >= stride:
+        return int(largest // stride) * stride
+    return int(largest)

@@ -1,0 +1,168 @@
+"""Coordinate masks on a lattice: bound, exactness limits, tiling invariance, gradients."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from svcode_core.network import ModelConfig, SVCoDe
+from svcode_core.network.encoding import positional_encoding
+from svcode_core.network.lattice import (
+    LatticeAxis,
+    encoding_error_bound,
+    interpolate,
+    lattice_axis,
+    mask_spacing_for,
+)
+
+S = 96
+TINY = ModelConfig(
+    width=4, view_width=2, demix_enc_blocks=(1, 1), demix_dec_blocks=(1, 1),
+    demix_middle_blocks=1, recon_enc_blocks=(1,), recon_dec_blocks=(1,),
+    recon_middle_blocks=0, mlp_hidden=8, output="linear", mask_spacing=8,
+)  # fmt: skip
+
+
+def _model(config: ModelConfig, seed: int = 0) -> SVCoDe:
+    torch.manual_seed(seed)
+    model = SVCoDe(config).eval()
+    with torch.no_grad():  # β and γ start at zero: give every mask a visible effect
+        for name, param in model.named_parameters():
+            if name.endswith(("beta", "gamma")):
+                param.normal_(0.0, 0.5)
+    return model
+
+
+def _same_weights(model: SVCoDe, config: ModelConfig) -> SVCoDe:
+    other = SVCoDe(config).eval()
+    other.load_state_dict(model.state_dict())
+    return other
+
+
+def test_encoding_interpolates_within_the_bound():
+    """Linear interpolation of every encoding feature between lattice nodes errs by at
+    most ω²Δ²/8, and the bound is not loose by more than a few times."""
+    for spacing in (4, 8, 16):
+        nodes, axis = lattice_axis(torch.tensor([0]), S, 0, spacing, S)
+        enc_nodes = positional_encoding(nodes, 4, "code", dtype=torch.float64)
+        pixels = torch.arange(S, dtype=torch.float64) * 2 / (S - 1) - 1
+        exact = positional_encoding(pixels, 4, "code", dtype=torch.float64)
+        weights = torch.zeros(S, axis.nodes, dtype=torch.float64)
+        below = axis.position[0].floor().clamp(max=axis.nodes - 2).long()
+        frac = axis.position[0] - below
+        weights[torch.arange(S), below] = 1 - frac
+        weights[torch.arange(S), below + 1] = frac
+        error = (weights @ enc_nodes[0] - exact).abs().max().item()
+        bound = encoding_error_bound(spacing, S, 4, "code")
+        assert error <= bound * (1 + 1e-9)
+        assert error >= bound / 4
+
+
+def test_mask_spacing_for_respects_the_tolerance():
+    for size, levels in ((384, 3), (2400, 4), (96, 2)):
+        for tolerance in (1e-3, 1e-2):
+            spacing = mask_spacing_for(size, 4, "code", levels, tolerance)
+            assert encoding_error_bound(spacing, size, 4, "code") <= tolerance
+    # the presets' spacings are within 1 % at the sub-view size they are meant for
+    assert encoding_error_bound(ModelConfig.mini().mask_spacing, 384, 4, "code") <= 1e-2
+    assert encoding_error_bound(ModelConfig.reference().mask_spacing, 2400, 4, "code") <= 1e-2
+
+
+def test_aligned_and_general_interpolation_agree():
+    """The up-sampling route and the dense interpolation matrices give the same masks."""
+    torch.manual_seed(0)
+    origins = torch.tensor([0, 16, 40])
+    for level in (0, 1, 2):
+        length = 32 // 2**level
+        _, rows = lattice_axis(origins, length, level, 8, S)
+        _, cols = lattice_axis(origins.flip(0), length, level, 8, S)
+        assert rows.upsample is not None
+        masks = torch.rand(3, 2, 5, rows.nodes, cols.nodes)
+        fast = interpolate(masks, rows, cols)
+        general = interpolate(masks, LatticeAxis(rows.position, rows.nodes, None, ()),
+                              LatticeAxis(cols.position, cols.nodes, None, ()))  # fmt: skip
+        for a, b in zip(fast, general, strict=True):
+            torch.testing.assert_close(a, b, rtol=0, atol=4 * torch.finfo(torch.float32).eps)
+
+
+def test_nodes_are_reproduced_exactly_and_spacing_one_is_exact():
+    model = _model(TINY)
+    exact = _same_weights(model, TINY.replace(mask_spacing=0))
+    unit = _same_weights(model, TINY.replace(mask_spacing=1))
+    views = torch.rand(2, 9, 32, 32)
+    origins = [[0, 0], [24, 40]]
+    with torch.no_grad():
+        for a, b in zip(unit(views, origins, S), exact(views, origins, S), strict=True):
+            torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+    # at the nodes (every 8th pixel of level 0) the interpolated mask is the MLP's value
+    lattice = model.coordinate_mask("demix", "enc0.0", "conv1", S)
+    pixels = exact.coordinate_mask("demix", "enc0.0", "conv1", S)
+    torch.testing.assert_close(lattice[:, ::8, ::8], pixels[:, ::8, ::8], rtol=0, atol=1e-6)
+    # between the nodes it differs, by less than a smooth function's interpolation error
+    difference = (lattice - pixels).abs().max().item()
+    assert 0 < difference < 0.05
+
+
+def test_lattice_masks_depend_only_on_the_global_position():
+    """A tile's masks are the crop of a whole-sub-view tile's masks (the lattice does
+    not move with the tile), on both interpolation routes."""
+    model = _model(TINY)
+    block = model.demix.unet.encoders[1][0]
+    whole = model._grids(torch.tensor([[0, 0]]), S, (S, S), 2)[1]
+    (reference,) = whole.tile_masks(block.folded_masks(whole.enc_row, whole.enc_col))
+    for origin in ([16, 32], [18, 6], [3, 5]):
+        grid = model._grids(torch.tensor([origin]), S, (32, 32), 2)[1]
+        (masks,) = grid.tile_masks(block.folded_masks(grid.enc_row, grid.enc_col))
+        r, c = origin[0] // 2, origin[1] // 2
+        for tile, full in zip(masks, reference, strict=True):
+            if origin[0] % 2 == 0 and origin[1] % 2 == 0:  # on the level-1 pixel grid
+                torch.testing.assert_close(tile, full[..., r : r + 16, c : c + 16],
+                                           rtol=0, atol=1e-6)  # fmt: skip
+            else:
+                assert torch.isfinite(tile).all()
+
+
+def test_tiled_output_equals_whole_sub_view_output_inside():
+    """Pixels far from every tile border agree between a tile and the whole sub-view."""
+    model = _model(TINY)
+    views = torch.rand(1, 9, S, S)
+    with torch.no_grad():
+        _, whole = model(views, [[0, 0]], S)
+        _, tile = model(views[..., 32:80, 16:64].contiguous(), [[32, 16]], S)
+    # the receptive field of TINY is far smaller than 16 px: compare the tile's centre
+    torch.testing.assert_close(tile[..., 16:32, 16:32], whole[..., 48:64, 32:48],
+                               rtol=1e-5, atol=1e-6)  # fmt: skip
+
+
+def test_gradients_reach_the_mask_mlps_through_the_interpolation():
+    model = _model(TINY).train()
+    views = torch.rand(2, 9, 32, 32)
+    demixed, recon = model(views, [[0, 0], [8, 16]], S)
+    (demixed.square().mean() + recon.square().mean()).backward()
+    grads = [p.grad for n, p in model.named_parameters() if ".mlp." in n]
+    assert grads and all(g is not None and torch.isfinite(g).all() for g in grads)
+    assert sum(g.abs().sum().item() for g in grads) > 0
+
+
+def test_lattice_model_needs_no_cache_and_ignores_it():
+    model = _model(TINY)
+    views = torch.rand(2, 9, 32, 32)
+    with torch.no_grad():
+        plain = model(views, [[0, 0], [32, 32]], S)
+        with model.cache_masks(max_bytes=2**26):
+            cached = model(views, [[0, 0], [32, 32]], S)
+            assert model.mask_cache_info()["bytes"] == 0
+    for a, b in zip(plain, cached, strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
+def test_old_model_files_load_exact(tmp_path, tiny_system):
+    """A configuration without ``mask_spacing`` (written before the lattice) is exact."""
+    data = TINY.to_dict()
+    del data["mask_spacing"]
+    assert ModelConfig.from_dict(data).mask_spacing == 0
+    with pytest.raises(Exception, match="mask_spacing"):
+        TINY.replace(mask_spacing=-1)
+    assert math.isclose(encoding_error_bound(0, 384, 4, "code"), 0.0)
