@@ -365,8 +365,13 @@ class Departures:
         return dataclasses.replace(self, **changes).validate()
 
     def with_optics_of(self, other: Departures) -> Departures:
-        """A copy whose optical fields (:data:`OPTICAL_FIELDS`) are those of ``other``."""
-        return dataclasses.replace(self, **{f: getattr(other, f) for f in OPTICAL_FIELDS})
+        """A copy whose optical fields (:data:`OPTICAL_FIELDS`) and seed are ``other``'s.
+
+        The seed fixes the lens jitter, so it goes with the optics (and the fixed-pattern
+        maps, which it also seeds, follow it).
+        """
+        fields = {f: getattr(other, f) for f in OPTICAL_FIELDS}
+        return dataclasses.replace(self, seed=other.seed, **fields)
 
     # --------------------------------------------------------------- named sets
     @classmethod

@@ -21,7 +21,7 @@ from .departures import Departures, load_departures
 from .geometry import extract_sub_views, pad_sensor_frame
 from .instrument import Instrument
 from .io import write_tiff
-from .noise import apply_sensor_noise
+from .noise import SensorModel, apply_sensor_noise
 
 __all__ = ["Simulation", "Simulator"]
 
@@ -125,9 +125,15 @@ class Simulator:
         The forward model is reused when the optical departures are this simulator's (only
         haze or camera differ), so per-frame draws of those cost no PSF computation.
         """
+        departures = load_departures(departures, self.system)
+        reuse = self.instrument or Instrument(
+            self.system, Departures(), self.system, self.operator, SensorModel(self.system.noise)
+        )
+        if departures.is_nominal and not reuse.departures.has_optics:
+            return Simulator(self.system, operator=self.operator, departures=departures)
         lenses = self.operator.lenses
         return Simulator(self.system, dtype=lenses.dtype, device=lenses.device,
-                         departures=departures, _reuse=self.instrument)  # fmt: skip
+                         departures=departures, _reuse=reuse)  # fmt: skip
 
     def simulate(
         self,
