@@ -188,3 +188,16 @@ def test_normalize_smooth_background_removes_uneven_illumination():
     assert out[20, 20] == pytest.approx(1.0, abs=0.1) and out[70, 50] > 0.85
     far = (np.hypot(rows - 20, cols - 20) > 8) & (np.hypot(rows - 70, cols - 50) > 8)
     assert out[far].max() < 0.05
+
+
+@pytest.mark.parametrize("name", ["cell.png", "ihc.png", "microaneurysms.png"])
+def test_held_out_images_are_dark_background_objects(name):
+    from svcode_core.phantoms import HELD_OUT_IMAGES, held_out_image
+
+    assert name in HELD_OUT_IMAGES
+    obj = held_out_image(name, 64)
+    assert obj.shape == (64, 64) and obj.dtype == np.float32
+    assert obj.min() == 0 and obj.max() == 1
+    assert np.median(obj) < 0.35  # mostly dark, like a fluorescence image
+    with pytest.raises(ValueError, match="unknown held-out image"):
+        held_out_image("camera.png", 64)

@@ -12,17 +12,31 @@ then ``dark_offset`` is added and the reading is clipped to ``[0, saturation]``.
 0 models an unsigned sensor (the ADC cannot report negative values); clipping at
 ``saturation`` models the full well. Negative ``y`` (from dark subtraction of real data) is
 allowed: the variance is clamped at 0 before the square root and the Poisson rate at 0.
+
+A real camera adds what :class:`SensorModel` describes: a per-pixel gain map (PRNU) and
+dark-signal map (hot pixels, DSNU), fixed for the sensor (:func:`fixed_pattern`), and an
+ADC that rounds the reading to ``2**bits - 1`` steps of the saturation level
+(:func:`quantize`).
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from .config import NoiseConfig
 
-__all__ = ["apply_sensor_noise", "noise_floor", "noise_std"]
+__all__ = [
+    "SensorModel",
+    "apply_sensor_noise",
+    "fixed_pattern",
+    "noise_floor",
+    "noise_std",
+    "quantize",
+]
 
 
 def _photons(noise: NoiseConfig, photons: float | None) -> float | None:
@@ -161,3 +175,110 @@ def noise_floor(noise: NoiseConfig, photons: float | None = None) -> float:
     if count is not None:
         variance += 1.0 / count**2
     return math.sqrt(variance)
+
+
+def quantize(frame: torch.Tensor, full_scale: float, bits: int) -> torch.Tensor:
+    """Round a reading in ``[0, full_scale]`` to the ``2**bits - 1`` steps of an ADC.
+
+    Parameters
+    ----------
+    frame : torch.Tensor
+        Reading, already clipped to ``[0, full_scale]``.
+    full_scale : float
+        The level of the largest code (the saturation level).
+    bits : int
+        ADC bit depth, 1 to 24.
+
+    Returns
+    -------
+    torch.Tensor
+        Multiples of ``full_scale / (2**bits - 1)``, same shape and dtype.
+
+    Examples
+    --------
+    >>> quantize(torch.tensor([0.1, 0.4, 0.9]), 1.0, 1).tolist()
+    [0.0, 0.0, 1.0]
+    """
+    if isinstance(bits, bool) or not isinstance(bits, int) or not 1 <= bits <= 24:
+        raise ValueError(f"bits must be an integer in 1..24, got {bits!r}")
+    if not (math.isfinite(full_scale) and full_scale > 0):
+        raise ValueError(f"full_scale must be a finite number > 0, got {full_scale!r}")
+    step = full_scale / (2**bits - 1)
+    return torch.round(frame / step) * step
+
+
+def fixed_pattern(
+    shape: tuple[int, int],
+    rng: np.random.Generator,
+    gain_rms: float = 0.0,
+    offset_rms: float = 0.0,
+    hot_fraction: float = 0.0,
+    hot_mean: float = 0.0,
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The fixed-pattern maps of one sensor, in the units of the normalised frame.
+
+    Parameters
+    ----------
+    shape : (int, int)
+        Sensor shape.
+    rng : numpy.random.Generator
+        Fixes the pattern (the same sensor every time for the same seed).
+    gain_rms : float
+        RMS of the relative gain variation (PRNU); the gain map is ``1 + gain_rms · n``.
+    offset_rms : float
+        RMS of the dark-signal non-uniformity (DSNU), a zero-mean Gaussian offset map.
+    hot_fraction : float
+        Fraction of hot pixels, chosen independently per pixel.
+    hot_mean : float
+        Mean extra dark signal of a hot pixel; the values are exponentially distributed.
+
+    Returns
+    -------
+    (gain, offset)
+        float64 maps of ``shape``, each ``None`` when it would be trivial (1 or 0).
+    """
+    gain = 1.0 + gain_rms * rng.standard_normal(shape) if gain_rms > 0 else None
+    offset = offset_rms * rng.standard_normal(shape) if offset_rms > 0 else np.zeros(shape)
+    if hot_fraction > 0 and hot_mean > 0:
+        hot = rng.random(shape) < hot_fraction
+        offset = offset + hot * rng.exponential(hot_mean, shape)
+    return gain, (offset if offset.any() else None)
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    """A camera: the noise model plus fixed-pattern maps and an ADC.
+
+    Attributes
+    ----------
+    noise : NoiseConfig
+        Shot and read noise, dark offset and saturation (:func:`apply_sensor_noise`).
+    gain : numpy.ndarray or None
+        Per-pixel gain (PRNU) of the sensor frame; ``None``: 1 everywhere.
+    offset : numpy.ndarray or None
+        Per-pixel dark signal (hot pixels and DSNU) in normalised intensity, added to the
+        expected signal (so a hot pixel's dark current carries its shot noise).
+    adc_bits : int or None
+        ADC bit depth (:func:`quantize` over ``[0, noise.saturation]``); ``None``: none.
+    """
+
+    noise: NoiseConfig
+    gain: np.ndarray | None = None
+    offset: np.ndarray | None = None
+    adc_bits: int | None = None
+
+    def expected(self, frame: torch.Tensor) -> torch.Tensor:
+        """The mean reading of a noise-free sensor ``frame``: gain times signal plus dark signal."""
+        if self.gain is not None:
+            frame = frame * torch.as_tensor(self.gain, dtype=frame.dtype, device=frame.device)
+        if self.offset is not None:
+            frame = frame + torch.as_tensor(self.offset, dtype=frame.dtype, device=frame.device)
+        return frame
+
+    def read(self, expected: torch.Tensor, generator: torch.Generator | None = None
+             ) -> torch.Tensor:  # fmt: skip
+        """One noisy, clipped and quantised reading of ``expected`` (any shape: pixel-wise)."""
+        reading = apply_sensor_noise(expected, self.noise, generator)
+        if self.adc_bits is None:
+            return reading
+        return quantize(reading, self.noise.saturation, self.adc_bits)

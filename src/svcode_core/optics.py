@@ -173,9 +173,16 @@ class _Sampling:
 
 
 def _pupil(
-    optics: OpticsConfig, sampling: _Sampling, h: np.ndarray, direction: np.ndarray
+    optics: OpticsConfig,
+    sampling: _Sampling,
+    h: np.ndarray,
+    direction: np.ndarray,
+    w020: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Complex pupil functions ``(N, M, M)`` and the wavefront gradient reach in pixels."""
+    """Complex pupil functions ``(N, M, M)`` and the wavefront gradient reach in pixels.
+
+    ``w020`` is a field-independent defocus term in waves (the object off the focal plane).
+    """
     pv = sampling.pupil[None, :, None]
     pu = sampling.pupil[None, None, :]
     dv = direction[:, 0, None, None]
@@ -191,7 +198,7 @@ def _pupil(
     spherical = optics.spherical
     coma = optics.coma * hh
     astigmatism = optics.astigmatism * hh**2
-    defocus = optics.field_curvature * hh**2
+    defocus = optics.field_curvature * hh**2 + w020
     wavefront = spherical * rho2**2 + coma * rho2 * along + astigmatism * along**2 + defocus * rho2
     # ∇W: where each ray lands, used to refuse fields whose light would wrap into the window.
     radial = 4.0 * spherical * rho2 + 2.0 * coma * along + 2.0 * defocus
@@ -205,10 +212,20 @@ def _pupil(
 
 
 def _psf_batch(
-    optics: OpticsConfig, sampling: _Sampling, h: np.ndarray, direction: np.ndarray
+    optics: OpticsConfig,
+    sampling: _Sampling,
+    h: np.ndarray,
+    direction: np.ndarray,
+    w020: float = 0.0,
+    offset: tuple[float, float] = (0.0, 0.0),
 ) -> np.ndarray:
-    """PSFs ``(N, k, k)`` of field points given by ``h`` and ``direction``."""
-    pupil, reach = _pupil(optics, sampling, h, direction)
+    """PSFs ``(N, k, k)`` of field points given by ``h`` and ``direction``.
+
+    ``w020`` adds defocus in waves; ``offset`` moves every image point by ``(row, col)``
+    pixels (sub-pixel exact, through the same linear phase as the distortion).
+    """
+    pupil, reach = _pupil(optics, sampling, h, direction, w020)
+    reach = reach + max(abs(offset[0]), abs(offset[1]))
     k = optics.kernel_size
     worst = int(np.argmax(reach))
     if reach[worst] + k // 2 >= sampling.period:
@@ -218,7 +235,7 @@ def _psf_batch(
             f"the sampled pupil repeats the PSF every {sampling.period:.1f} px, which wraps "
             f"light into the {k}-px window; raise pupil_samples or lower the aberrations"
         )
-    shift = optics.distortion * h[:, None] ** 3 * direction  # (N, 2) pixels
+    shift = optics.distortion * h[:, None] ** 3 * direction + np.asarray(offset)  # (N, 2) px
     phase = -2j * np.pi * sampling.scale * sampling.pupil[None, None, :]
     rows = np.exp(phase * (sampling.offsets[None, :, None] - shift[:, 0, None, None]))
     cols = np.exp(phase * (sampling.offsets[None, :, None] - shift[:, 1, None, None]))
@@ -233,7 +250,13 @@ def _psf_batch(
     return intensity * gain[:, None, None]
 
 
-def _psfs(config: SystemConfig, lens: int, points: np.ndarray) -> np.ndarray:
+def _psfs(
+    config: SystemConfig,
+    lens: int,
+    points: np.ndarray,
+    w020: float = 0.0,
+    offset: tuple[float, float] = (0.0, 0.0),
+) -> np.ndarray:
     optics = config.optics
     sampling = _Sampling(optics)
     h, direction = _field(config, lens, points)
@@ -244,12 +267,17 @@ def _psfs(config: SystemConfig, lens: int, points: np.ndarray) -> np.ndarray:
     out = np.empty((len(points), optics.kernel_size, optics.kernel_size))
     for start in range(0, len(points), batch):
         part = slice(start, start + batch)
-        out[part] = _psf_batch(optics, sampling, h[part], direction[part])
+        out[part] = _psf_batch(optics, sampling, h[part], direction[part], w020, offset)
     return out
 
 
 def lens_psfs(
-    config: SystemConfig, lens: int, positions: np.ndarray | Sequence | None = None
+    config: SystemConfig,
+    lens: int,
+    positions: np.ndarray | Sequence | None = None,
+    *,
+    defocus: float = 0.0,
+    offset: tuple[float, float] = (0.0, 0.0),
 ) -> np.ndarray:
     """PSFs of one lens at many object points.
 
@@ -261,6 +289,12 @@ def lens_psfs(
     positions : array_like, optional
         ``(N, 2)`` object points ``(v, u)``; default the PSF grid
         (:func:`psf_grid_positions`).
+    defocus : float
+        Field-independent defocus ``W020`` in waves at the pupil edge (the object off the
+        focal plane); 0 for the in-focus system.
+    offset : (float, float)
+        Displacement ``(row, col)`` in pixels of every image point of this lens (a lens
+        off its calibrated position), applied sub-pixel exactly by the pupil's linear phase.
 
     Returns
     -------
@@ -279,7 +313,10 @@ def lens_psfs(
         points = psf_grid_positions(config)
     else:
         points = _as_positions(positions, "positions")
-    return _psfs(config, lens, points)
+    for name, value in (("defocus", defocus), *zip(("offset", "offset"), offset, strict=True)):
+        if not math.isfinite(value):
+            raise ValueError(f"{name} must be finite, got {value!r}")
+    return _psfs(config, lens, points, float(defocus), (float(offset[0]), float(offset[1])))
 
 
 def lens_psf(config: SystemConfig, lens: int, position: np.ndarray | Sequence) -> np.ndarray:
@@ -307,12 +344,31 @@ def lens_psf(config: SystemConfig, lens: int, position: np.ndarray | Sequence) -
     return lens_psfs(config, lens, _as_positions([position], "position"))[0]
 
 
-def system_psfs(config: SystemConfig) -> np.ndarray:
+def system_psfs(
+    config: SystemConfig,
+    *,
+    defocus: float = 0.0,
+    offsets: np.ndarray | Sequence | None = None,
+) -> np.ndarray:
     """PSFs of all nine lenses on the PSF grid.
+
+    Parameters
+    ----------
+    config : SystemConfig
+    defocus : float
+        Defocus ``W020`` in waves for every lens (see :func:`lens_psfs`).
+    offsets : array_like, optional
+        ``(9, 2)`` displacement ``(row, col)`` in pixels of each lens's image points.
 
     Returns
     -------
     numpy.ndarray
         ``(9, G·G, k, k)`` float64, lens-major, grid order of :func:`psf_grid_positions`.
     """
-    return np.stack([lens_psfs(config, lens) for lens in range(N_LENSES)])
+    moves = np.zeros((N_LENSES, 2)) if offsets is None else np.asarray(offsets, dtype=float)
+    if moves.shape != (N_LENSES, 2):
+        raise ValueError(f"offsets must have shape ({N_LENSES}, 2), got {moves.shape}")
+    return np.stack([
+        lens_psfs(config, lens, defocus=defocus, offset=tuple(moves[lens]))
+        for lens in range(N_LENSES)
+    ])

@@ -38,10 +38,12 @@ from scipy import ndimage, special
 from scipy.spatial import cKDTree
 
 __all__ = [
+    "HELD_OUT_IMAGES",
     "KINDS",
     "beads",
     "cells",
     "from_image",
+    "held_out_image",
     "make_object",
     "mixed",
     "neurons",
@@ -646,3 +648,57 @@ def from_image(
     resized = skimage.transform.resize(square, (size, size), order=1, anti_aliasing=True,
                                        preserve_range=True)
     return normalize_object(resized, background_percentile, upper_percentile)
+
+
+# ------------------------------------------------------------ held-out test images
+#: scikit-image sample files kept out of every training set: benchmark content only.
+HELD_OUT_IMAGES = ("cell.png", "ihc.png", "microaneurysms.png")
+
+
+def _held_out_map(name: str, image: np.ndarray) -> tuple[np.ndarray, float]:
+    """A bright-on-dark map of one held-out image and the background percentile to cut."""
+    if name == "ihc.png":  # stained tissue: haematoxylin + DAB optical densities as dye
+        stains = skimage.color.rgb2hed(image[..., :3])
+        return stains[..., 0] + stains[..., 2], 50.0
+    grey = image.astype(np.float64) / 255.0
+    if name == "microaneurysms.png":  # dark vessels and lesions on a retina: invert locally
+        return np.clip(ndimage.gaussian_filter(grey, 8) - grey, 0, None), 80.0
+    return grey, 75.0  # cell.png: a bright cell on a darker field
+
+
+def held_out_image(name: str, size: int) -> np.ndarray:
+    """A held-out scikit-image sample as a dark-background, fluorescence-like object.
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`HELD_OUT_IMAGES`: ``cell.png`` (a cell, bright on its background),
+        ``ihc.png`` (immunohistochemistry: the two stains' optical densities, so nuclei and
+        membranes glow), ``microaneurysms.png`` (retinal vessels and lesions, inverted
+        against a smooth background).
+    size : int
+        Side of the square result (centre square of the image, anti-aliased resize).
+
+    Returns
+    -------
+    numpy.ndarray
+        float32 ``(size, size)`` in ``[0, 1]``, background at 0 (the given percentile of
+        the map is subtracted), the 99.5th percentile at 1.
+
+    Raises
+    ------
+    ValueError
+        For a name not in :data:`HELD_OUT_IMAGES`.
+    FileNotFoundError
+        If scikit-image does not ship the file.
+    """
+    if name not in HELD_OUT_IMAGES:
+        raise ValueError(f"unknown held-out image {name!r}; choose one of "
+                         f"{', '.join(HELD_OUT_IMAGES)}")  # fmt: skip
+    import skimage.data
+
+    path = Path(skimage.data.__file__).parent / name
+    if not path.is_file():
+        raise FileNotFoundError(f"scikit-image's bundled sample {path} is missing")
+    image, background = _held_out_map(name, skimage.io.imread(path))
+    return from_image(image, size, background_percentile=background, upper_percentile=99.5)

@@ -1,7 +1,13 @@
-"""End-to-end simulation of CM² measurements: object → noisy raw frame, views, targets."""
+"""End-to-end simulation of CM² measurements: object → noisy raw frame, views, targets.
+
+With :class:`~svcode_core.departures.Departures` the frame comes from the true instrument
+(:class:`~svcode_core.instrument.Instrument`) while views are cut, as a user would, at the
+nominal system's chief rays.
+"""
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -11,9 +17,11 @@ from tqdm.auto import tqdm
 
 from .cm2 import CM2Operator
 from .config import SystemConfig
+from .departures import Departures, load_departures
 from .geometry import extract_sub_views, pad_sensor_frame
+from .instrument import Instrument
 from .io import write_tiff
-from .noise import apply_sensor_noise
+from .noise import SensorModel, apply_sensor_noise
 
 __all__ = ["Simulation", "Simulator"]
 
@@ -39,14 +47,29 @@ class Simulation:
     views: np.ndarray
     demixed: np.ndarray
 
-    def save(self, out_dir: str | Path, system: SystemConfig, extra: dict | None = None) -> Path:
+    def save(
+        self,
+        out_dir: str | Path,
+        system: SystemConfig,
+        extra: dict | None = None,
+        departures: Departures | None = None,
+    ) -> Path:
         """Write ``measurement.tif``, ``views.tif``, ``demixed.tif``, ``object.tif`` and
-        ``system.json`` to ``out_dir``; every TIFF records the system and ``extra``."""
+        ``system.json`` to ``out_dir``; every TIFF records the system and ``extra``.
+
+        With ``departures`` (the true instrument's), they are also recorded in every TIFF
+        (key ``departures``) and written to ``departures.json``; ``system`` stays the
+        nominal system a user would have.
+        """
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
+        if departures is not None:
+            extra = {**(extra or {}), "departures": departures.to_dict()}
         for name in ("measurement", "views", "demixed", "object"):
             write_tiff(out_dir / f"{name}.tif", getattr(self, name), system, kind=name, extra=extra)
         system.save(out_dir / "system.json")
+        if departures is not None:
+            departures.save(out_dir / "departures.json")
         return out_dir
 
 
@@ -60,6 +83,10 @@ class Simulator:
         Default: :meth:`CM2Operator.from_system` (pupil-model PSFs, ``system.rank``).
     device, dtype
         Where and in which precision the forward model runs.
+    departures : Departures or str, optional
+        The true instrument's departures from ``system`` (or a named set / JSON path);
+        ``None`` or nominal departures simulate the nominal system itself. Not together
+        with ``operator``.
 
     Examples
     --------
@@ -75,9 +102,38 @@ class Simulator:
         operator: CM2Operator | None = None,
         device: torch.device | str = "cpu",
         dtype: torch.dtype = torch.float32,
+        departures: Departures | str | None = None,
+        _reuse: Instrument | None = None,
     ) -> None:
         self.system = system.validate()
-        self.operator = operator or CM2Operator.from_system(system, dtype=dtype, device=device)
+        if departures is not None:
+            departures = load_departures(departures, self.system)
+        self.departures = departures
+        self.instrument: Instrument | None = None
+        if departures is None or departures.is_nominal:
+            self.operator = operator or CM2Operator.from_system(system, dtype=dtype, device=device)
+            return
+        if operator is not None:
+            raise ValueError("give either an operator or departures, not both: the "
+                             "departed instrument builds its own forward model")  # fmt: skip
+        self.instrument = Instrument.build(self.system, departures, dtype, device, _reuse)
+        self.operator = self.instrument.operator
+
+    def with_departures(self, departures: Departures) -> Simulator:
+        """A simulator of the same nominal system with other departures.
+
+        The forward model is reused when the optical departures are this simulator's (only
+        haze or camera differ), so per-frame draws of those cost no PSF computation.
+        """
+        departures = load_departures(departures, self.system)
+        reuse = self.instrument or Instrument(
+            self.system, Departures(), self.system, self.operator, SensorModel(self.system.noise)
+        )
+        if departures.is_nominal and not reuse.departures.has_optics:
+            return Simulator(self.system, operator=self.operator, departures=departures)
+        lenses = self.operator.lenses
+        return Simulator(self.system, dtype=lenses.dtype, device=lenses.device,
+                         departures=departures, _reuse=reuse)  # fmt: skip
 
     def simulate(
         self,
@@ -96,7 +152,9 @@ class Simulator:
         seed : int or None
             Seed of the noise draws (``None``: fresh entropy).
         noise : bool
-            Apply the sensor model of ``system.noise`` (noise, dark offset, saturation).
+            Apply the sensor model of ``system.noise`` (noise, dark offset, saturation),
+            or the departed camera's. ``False`` gives the expected reading: with
+            departures, haze and fixed-pattern maps included, no random noise.
         frames : int
             Number of independent noise draws of the same scene (``T``).
         progress : bool
@@ -110,7 +168,12 @@ class Simulator:
             raise ValueError(f"frames must be >= 1, got {frames}")
         op = self.operator
         x = torch.as_tensor(np.asarray(obj), dtype=op.lenses.dtype, device=op.lenses.device)
-        clean, targets = op.measure_with_targets(x)
+        if self.instrument is None:
+            clean, targets = op.measure_with_targets(x)
+            read = functools.partial(apply_sensor_noise, noise=self.system.noise)
+        else:
+            clean, targets = self.instrument.observe(x)
+            read = self.instrument.sensor.read
         generator = torch.Generator(device=clean.device)
         if seed is None:
             generator.seed()
@@ -118,7 +181,7 @@ class Simulator:
             generator.manual_seed(int(seed))
         readings = []
         for _ in tqdm(range(frames), desc="simulate", disable=not progress, leave=False):
-            frame = apply_sensor_noise(clean, self.system.noise, generator) if noise else clean
+            frame = read(clean, generator=generator) if noise else clean
             readings.append(frame)
         views = extract_sub_views(pad_sensor_frame(readings[0], self.system), self.system)
         measurement = torch.stack(readings) if frames > 1 else readings[0]

@@ -1,21 +1,29 @@
-"""``svcode bench``: work–precision benchmark of every reconstruction method and speed knob.
+"""``svcode bench``: work–precision benchmark of every method and knob in every regime.
 
-Fixed simulated test scenes (cells, vessels, sparse and dense beads, neurons; fixed object
-and noise seeds) are imaged through the system's default forward model (:class:`Simulator`,
-low-rank order chosen by ``rank_tolerance``) with its sensor noise. Every method and knob
-reconstructs every scene; each row of the result reports the scene-mean PSNR, SSIM,
-centre and outer-ring PSNR (:mod:`svcode_core.metrics`, ``data_range = 1``), seconds per
-frame and peak memory.
+A *regime* is the instrument the test frames come from (:mod:`svcode_core.departures`):
+``matched`` is the nominal system itself, i.e. the data are simulated with the very
+forward model the model-based solvers invert (the inverse crime); ``calibration``,
+``model``, ``background``, ``low-light`` and ``realistic`` are the named sets of
+departures, scaled to the system. The reconstructors are always given the nominal system.
 
-Rows
-    * **LSV-ADMM**, ``K`` = 3: one run of 500 iterations per scene, read out at 10, 20, 30,
-      50, 100, 200 and 500 iterations (time = solver time up to that iteration);
-    * **LSV-ADMM** at 50 iterations with the operator's low-rank order ``K`` = 1, 6 and the
-      simulator's own ``K`` (an inverse crime: the exact model of the data);
+Fixed test scenes: synthetic phantoms (cells, vessels, sparse and dense beads, neurons;
+fixed object seeds) and the held-out real images of
+:data:`svcode_core.phantoms.HELD_OUT_IMAGES` (never used for training), each imaged with a
+fixed noise seed. Every method and knob reconstructs every scene of every regime; each
+row reports the scene-mean PSNR, SSIM, centre and outer-ring PSNR
+(:mod:`svcode_core.metrics`, ``data_range = 1``), seconds per frame and peak memory.
+
+Rows (per regime)
+    * **LSV-ADMM**, ``K`` = 3: one run per scene, read out at 10, 20 and 50 iterations
+      (time = solver time up to that iteration); with ``--rank-sweep``, in the matched
+      regime, also at 50 iterations with ``K`` = 1 and 6;
     * **Wiener** per view with balance 1e-3, 1e-2, 1e-1; **Richardson–Lucy** per view with
-      10, 30 and 100 iterations;
-    * **SV-CoDe** (only with ``--weights`` or a bundled model): tile stride ``P/2`` and
-      ``P/4``, mask cache on/off, fp32/bf16, empty-tile skipping on/off.
+      10 and 30 iterations;
+    * **SV-CoDe** (only with ``--weights`` or a bundled model): tile stride ``P/2`` in
+      every regime and ``P/4`` in the matched one; with ``--all-knobs``, in the matched
+      regime, also mask cache off, bf16 and empty-tile skipping off (knobs that change
+      the time, not the estimate);
+    * learned baselines (``--learned``) and ablations (``--ablations``), one row each.
 
 Timing and memory
     Seconds per frame are wall-clock time of the reconstruction call on one CPU thread
@@ -27,11 +35,10 @@ Timing and memory
     memory the allocator reuses from earlier rows (small rows after large ones
     under-report). Where the peak cannot be reset (not Linux) the column is empty.
 
-``--quick`` runs two scenes, ADMM (``K`` = 3) to 50 iterations, one Wiener and one RL
-setting: under two minutes on one core. ``--methods`` runs a subset of the method
-families; ``--ablations`` adds one row per extra SV-CoDe model (such as the ablations
-trained with ``svcode train --ablation``) at the default knob, labelled by the switches its
-configuration turns off.
+``--quick`` runs two scenes (one synthetic, one held-out), ADMM (``K`` = 3) to 30
+iterations, one Wiener and one RL setting and SV-CoDe's default knob, in every regime: a
+few minutes on one core. ``--regimes`` runs a subset; ``--methods`` a subset of the method
+families.
 """
 
 from __future__ import annotations
@@ -52,12 +59,13 @@ from ..baselines import LsvAdmm, ShiftInvariantDeconvolution
 from ..baselines.admm import settings_for
 from ..cm2 import CM2Operator
 from ..config import SystemConfig, load_system
+from ..departures import Departures
 from ..footprint import PeakMemory, model_footprint
 from ..geometry import pad_sensor_frame
 from ..metrics import CENTRE_RADIUS, RING_RADIUS, image_quality
 from ..network import read_model_metadata
 from ..optics import system_psfs
-from ..phantoms import make_object
+from ..phantoms import HELD_OUT_IMAGES, held_out_image, make_object
 from ..pretrained import bundled_weights
 from ..simulate import Simulator
 
@@ -67,13 +75,26 @@ SCENES = (
     ("beads-sparse", "beads", {"density": 1.0}),
     ("beads-dense", "beads", {"density": 40.0}),
     ("neurons", "neurons", {}),
+    *((name.removesuffix(".png"), "held-out", {"name": name}) for name in HELD_OUT_IMAGES),
 )
-ADMM_CHECKPOINTS = (10, 20, 30, 50, 100, 200, 500)
+QUICK_SCENES = ("cells", "ihc")
+#: Regimes and the departure set each simulates; "matched" is the nominal system.
+REGIMES = {
+    "matched": "none",
+    "calibration": "calibration",
+    "model": "model",
+    "background": "background",
+    "low-light": "low-light",
+    "realistic": "realistic",
+}
+INVERSE_CRIME = "inverse crime: data simulated with the reconstructors' own forward model"
+ADMM_CHECKPOINTS = (10, 20, 50)
+QUICK_ADMM_CHECKPOINTS = (10, 30)
 ADMM_RANK = 3
-RANK_SWEEP = (1, 6, None)
+RANK_SWEEP = (1, 6)
 RANK_SWEEP_ITERATIONS = 50
 WIENER_BALANCES = (1e-3, 1e-2, 1e-1)
-RL_ITERATIONS = (10, 30, 100)
+RL_ITERATIONS = (10, 30)
 METRICS = ("psnr", "ssim", "psnr_centre", "psnr_ring")
 METHOD_FAMILIES = ("admm", "deconvolution", "svcode", "learned")
 LEARNED_LABELS = {"MultiWienerNet": "MultiWienerNet", "SVFourierNet": "SV-FourierNet"}
@@ -99,12 +120,14 @@ class Row:
     setup_seconds: float = 0.0
     peak_memory_mib: float | None = None
     footprint: dict[str, Any] | None = None
+    regime: str = "matched"
 
     def summary(self) -> dict[str, Any]:
         """Scene means of every metric and of the seconds per frame."""
         values = list(self.per_scene.values())
         mean = {key: float(np.mean([v[key] for v in values])) for key in (*METRICS, "seconds")}
         return {
+            "regime": self.regime,
             "method": self.method,
             "knob": self.knob,
             "settings": self.settings,
@@ -116,13 +139,20 @@ class Row:
         }
 
 
+def scene_object(kind: str, size: int, index: int, params: dict[str, Any]) -> np.ndarray:
+    """Ground truth of a scene: a phantom (object seed ``index``) or a held-out image."""
+    if kind == "held-out":
+        return held_out_image(params["name"], size)
+    return make_object(kind, size, index, **params)
+
+
 def make_scenes(system: SystemConfig, names: tuple[str, ...], simulator: Simulator) -> list[Scene]:
     """The fixed test scenes (object seed = index in :data:`SCENES`, noise seed 100 + index)."""
     scenes = []
     for index, (name, kind, params) in enumerate(SCENES):
         if name not in names:
             continue
-        truth = make_object(kind, system.sub_view_size, index, **params)
+        truth = scene_object(kind, system.sub_view_size, index, params)
         raw = simulator.simulate(truth, seed=100 + index).measurement
         scenes.append(Scene(name, truth, raw))
     return scenes
@@ -234,10 +264,33 @@ def _score_reconstructor(row: Row, reconstructor: Any, scenes: list[Scene]) -> R
     return row
 
 
+def _cached(cache: dict | None, key: tuple, build: Callable[[], Any]) -> tuple[Any, float, bool]:
+    """``build()`` once per key when a cache is given: (object, set-up seconds, fresh)."""
+    if cache is not None and key in cache:
+        return (*cache[key], False)
+    start = time.perf_counter()
+    made = build()
+    entry = (made, time.perf_counter() - start)
+    if cache is not None:
+        cache[key] = entry
+    return (*entry, True)
+
+
 def svcode_rows(
-    weights: Path, system: SystemConfig, scenes: list[Scene], all_knobs: bool = True
+    weights: Path,
+    system: SystemConfig,
+    scenes: list[Scene],
+    all_knobs: bool | int = True,
+    cache: dict | None = None,
 ) -> list[Row]:
-    """SV-CoDe rows over stride, mask cache, precision and skipping (or the default only)."""
+    """SV-CoDe rows over stride, mask cache, precision and skipping (or the default only).
+
+    ``all_knobs``: ``True`` every knob, ``False`` the default only, an integer ``n`` the
+    first ``n`` (default, then stride ``P/4``, cache off, bf16, skipping off).
+
+    With ``cache`` (a dict kept across calls) each knob's reconstructor is built and warmed
+    up once and reused for the scenes of later regimes.
+    """
     from ..reconstruct import DEFAULT_MASK_CACHE_BYTES, Reconstructor
 
     patch = system.patch_size
@@ -250,36 +303,57 @@ def svcode_rows(
     ]
     method = model_label(weights)
     rows = []
-    for knob in knobs if all_knobs else knobs[:1]:
-        start = time.perf_counter()
-        rec = Reconstructor.from_weights(
-            weights, system, precision=knob["precision"], tile_size=patch,
-            stride=knob["stride"], skip_empty=knob["skip"],
-            mask_cache_bytes=DEFAULT_MASK_CACHE_BYTES if knob["cache"] else 0,
-        )  # fmt: skip
-        rec.reconstruct(scenes[0].raw)  # warm-up: fills the mask cache, as in a recording
+    chosen = knobs[: len(knobs) if all_knobs is True else max(1, int(all_knobs))]
+    for knob in chosen:
+        def build(knob: dict = knob) -> Any:
+            rec = Reconstructor.from_weights(
+                weights, system, precision=knob["precision"], tile_size=patch,
+                stride=knob["stride"], skip_empty=knob["skip"],
+                mask_cache_bytes=DEFAULT_MASK_CACHE_BYTES if knob["cache"] else 0,
+            )  # fmt: skip
+            rec.reconstruct(scenes[0].raw)  # warm-up: fills the mask cache, as in a recording
+            return rec
+
+        key = ("svcode", str(weights), tuple(knob.items()))
+        rec, setup, fresh = _cached(cache, key, build)
         label = ", ".join(f"{k} {v}" for k, v in knob.items())
-        row = Row(method, label, knob, setup_seconds=time.perf_counter() - start)
+        row = Row(method, label, knob, setup_seconds=setup)
         rows.append(_score_reconstructor(row, rec, scenes))
-    rows[0].footprint = model_footprint(weights, system).to_dict()
+        if fresh:
+            row.footprint = model_footprint(weights, system).to_dict() if knob is knobs[0] else None
     return rows
 
 
-def learned_rows(weights: Path, system: SystemConfig, scenes: list[Scene]) -> list[Row]:
+def learned_rows(
+    weights: Path, system: SystemConfig, scenes: list[Scene], cache: dict | None = None
+) -> list[Row]:
     """One row for a trained MultiWienerNet or SV-FourierNet, with its footprint."""
     from ..learned_baselines import LearnedReconstructor
 
-    start = time.perf_counter()
-    rec = LearnedReconstructor.from_weights(weights, system)
-    rec.reconstruct(scenes[0].raw)  # warm-up
+    def build() -> Any:
+        rec = LearnedReconstructor.from_weights(weights, system)
+        rec.reconstruct(scenes[0].raw)  # warm-up
+        return rec
+
+    rec, setup, fresh = _cached(cache, ("learned", str(weights)), build)
     method = LEARNED_LABELS[type(rec.model).__name__]
-    row = Row(method, "fp32", {"precision": "fp32"}, setup_seconds=time.perf_counter() - start)
+    row = Row(method, "fp32", {"precision": "fp32"}, setup_seconds=setup)
     _score_reconstructor(row, rec, scenes)
-    row.footprint = model_footprint(weights, system).to_dict()
+    if fresh:
+        row.footprint = model_footprint(weights, system).to_dict()
     return [row]
 
 
 # ------------------------------------------------------------------ driver
+def regime_simulator(system: SystemConfig, regime: str, nominal: Simulator) -> Simulator:
+    """The simulator of one regime: ``nominal`` for matched, else the departed instrument."""
+    if regime not in REGIMES:
+        raise ValueError(f"unknown regime {regime!r}; choose from {', '.join(REGIMES)}")
+    if regime == "matched":
+        return nominal
+    return Simulator(system, departures=Departures.named(REGIMES[regime], system))
+
+
 def run_benchmark(
     system: SystemConfig,
     quick: bool = False,
@@ -288,69 +362,84 @@ def run_benchmark(
     methods: tuple[str, ...] = METHOD_FAMILIES,
     ablations: tuple[Path, ...] = (),
     learned: tuple[Path, ...] = (),
+    regimes: tuple[str, ...] = tuple(REGIMES),
+    all_knobs: bool = False,
+    rank_sweep: bool = False,
 ) -> dict[str, Any]:
-    """Run the rows of ``methods`` on the fixed scenes; return the JSON-ready report.
+    """Run the rows of ``methods`` on the fixed scenes of every regime; return the report.
 
     ``ablations`` are further SV-CoDe model files, benchmarked at the default knob only;
-    ``learned`` are trained learned-baseline model files (the ``learned`` family).
+    ``learned`` are trained learned-baseline model files (the ``learned`` family). Every
+    reconstructor is built once, for the nominal system, and used in every regime.
+    ``all_knobs`` adds SV-CoDe's time-only knobs and ``rank_sweep`` ADMM at other ``K``,
+    both in the matched regime only.
     """
     unknown = set(methods) - set(METHOD_FAMILIES)
     if unknown:
         raise ValueError(f"unknown method families {sorted(unknown)}; choose from "
                          f"{', '.join(METHOD_FAMILIES)}")  # fmt: skip
-    names = ("cells", "beads-sparse") if quick else tuple(s[0] for s in SCENES)
+    for regime in regimes:
+        if regime not in REGIMES:
+            raise ValueError(f"unknown regime {regime!r}; choose from {', '.join(REGIMES)}")
+    names = QUICK_SCENES if quick else tuple(s[0] for s in SCENES)
     start = time.perf_counter()
     psfs = system_psfs(system)
-    simulator = Simulator(system, CM2Operator.from_psfs(system, psfs))
-    scenes = make_scenes(system, names, simulator)
-    progress(f"{len(scenes)} scenes simulated (K = {simulator.operator.rank}) "
-             f"in {time.perf_counter() - start:.1f} s")  # fmt: skip
+    nominal = Simulator(system, CM2Operator.from_psfs(system, psfs))
 
-    def operator(rank: int | None) -> tuple[CM2Operator, float]:
-        if rank is None:
-            return simulator.operator, 0.0
+    def operator(rank: int) -> tuple[CM2Operator, float]:
         begin = time.perf_counter()
         op = CM2Operator.from_psfs(system, psfs, rank=rank)
         return op, time.perf_counter() - begin
 
-    rows: list[Row] = []
     if {"admm", "deconvolution"} & set(methods):
-        op, setup = operator(ADMM_RANK)  # shared by both families
-    if "admm" in methods:
-        checkpoints = (10, 50) if quick else ADMM_CHECKPOINTS
-        rows += admm_rows(op, scenes, checkpoints, f"K={ADMM_RANK}", setup)
-        progress(f"LSV-ADMM K={ADMM_RANK} done ({time.perf_counter() - start:.0f} s)")
-    if "deconvolution" in methods:
-        rows += deconvolution_rows(op, scenes, quick)
-        progress(f"Wiener / RL done ({time.perf_counter() - start:.0f} s)")
-    if "admm" in methods and not quick:
-        for rank in RANK_SWEEP:
-            op, setup = operator(rank)
-            label = f"K={op.rank}" + (" (simulator's)" if rank is None else "")
-            rows += admm_rows(op, scenes, (RANK_SWEEP_ITERATIONS,), label, setup)
-            progress(f"LSV-ADMM {label} done ({time.perf_counter() - start:.0f} s)")
+        op, setup = operator(ADMM_RANK)  # shared by both families and every regime
     notes = []
     if "svcode" in methods:
         weights = weights or bundled_weights(system)
         if weights is None:
             notes.append("SV-CoDe rows skipped: no --weights given and no bundled model")
-        else:
-            rows += svcode_rows(weights, system, scenes)
-            progress(f"SV-CoDe done ({time.perf_counter() - start:.0f} s)")
-    for path in ablations:
-        rows += svcode_rows(path, system, scenes, all_knobs=False)
-        progress(f"{rows[-1].method} done ({time.perf_counter() - start:.0f} s)")
-    if "learned" in methods:
-        if not learned:
-            notes.append("learned-baseline rows skipped: no --learned model files given")
-        for path in learned:
-            rows += learned_rows(path, system, scenes)
-            progress(f"{rows[-1].method} done ({time.perf_counter() - start:.0f} s)")
+    if "learned" in methods and not learned:
+        notes.append("learned-baseline rows skipped: no --learned model files given")
+    rows: list[Row] = []
+    cache: dict = {}
+    departures: dict[str, Any] = {}
+    for regime in regimes:
+        begin = time.perf_counter()
+        simulator = regime_simulator(system, regime, nominal)
+        departures[regime] = simulator.departures.to_dict() if simulator.departures else None
+        scenes = make_scenes(system, names, simulator)
+        progress(f"[{regime}] {len(scenes)} scenes simulated (true K = "
+                 f"{simulator.operator.rank}) in {time.perf_counter() - begin:.1f} s")  # fmt: skip
+        new: list[Row] = []
+        if "admm" in methods:
+            checkpoints = QUICK_ADMM_CHECKPOINTS if quick else ADMM_CHECKPOINTS
+            new += admm_rows(op, scenes, checkpoints, f"K={ADMM_RANK}", setup)
+            if regime == "matched" and rank_sweep:
+                for rank in RANK_SWEEP:
+                    sweep, sweep_setup = operator(rank)
+                    new += admm_rows(sweep, scenes, (RANK_SWEEP_ITERATIONS,), f"K={sweep.rank}",
+                                     sweep_setup)  # fmt: skip
+        if "deconvolution" in methods:
+            new += deconvolution_rows(op, scenes, quick)
+        if "svcode" in methods and weights is not None:
+            knobs = (all_knobs or 2) if regime == "matched" and not quick else 1
+            new += svcode_rows(weights, system, scenes, all_knobs=knobs, cache=cache)
+        for path in ablations:
+            new += svcode_rows(path, system, scenes, all_knobs=False, cache=cache)
+        if "learned" in methods:
+            for path in learned:
+                new += learned_rows(path, system, scenes, cache=cache)
+        for row in new:
+            row.regime = regime
+        rows += new
+        progress(f"[{regime}] {len(new)} rows done ({time.perf_counter() - start:.0f} s)")
     return {
         "system": system.name,
         "quick": quick,
-        "scenes": [s.name for s in scenes],
-        "simulator_rank": simulator.operator.rank,
+        "regimes": list(regimes),
+        "departures": departures,
+        "scenes": list(names),
+        "simulator_rank": nominal.operator.rank,
         "zones": {"centre": f"r < {CENTRE_RADIUS}", "ring": f"r > {RING_RADIUS}"},
         "threads": torch.get_num_threads(),
         "machine": f"{platform.machine()} {platform.processor() or ''}".strip(),
@@ -361,33 +450,75 @@ def run_benchmark(
     }
 
 
-def write_markdown(report: dict[str, Any], path: Path) -> None:
-    """The report as a Markdown table."""
-    lines = [
-        "# Work–precision benchmark",
-        "",
-        f"System {report['system']}; scenes {', '.join(report['scenes'])} (simulated with the "
-        f"system's forward model, K = {report['simulator_rank']}, default sensor noise). "
-        f"Means over scenes; PSNR in dB against the ground truth (data range 1); centre "
-        f"{report['zones']['centre']}, ring {report['zones']['ring']} (normalised field "
-        f"radius). CPU, {report['threads']} thread(s), on a 2-core machine shared with other "
-        "jobs: times are indicative to about ±30%. Set-up (operator build, norm estimate) "
-        "is excluded from s/frame. Peak MiB is the rise of the peak resident memory above "
-        "the resident memory before the row: memory the allocator already holds from earlier "
-        "rows is reused without being counted, so small rows after large ones under-report "
-        f"(down to 0). Total run {report['total_seconds'] / 60:.1f} min.",
-        "",
-        "| method | knob | PSNR | SSIM | PSNR centre | PSNR ring | s / frame | set-up s "
-        "| peak MiB |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
+def _regimes(report: dict[str, Any]) -> list[str]:
+    """Regimes of the report's rows in order (rows without one are matched)."""
+    return list(dict.fromkeys(row.get("regime", "matched") for row in report["rows"]))
+
+
+def _regime_title(regime: str) -> str:
+    return f"{regime} ({INVERSE_CRIME})" if regime == "matched" else regime
+
+
+def regime_table(report: dict[str, Any]) -> list[str]:
+    """Markdown lines: PSNR (dB) of every method and knob (rows) in every regime (columns)."""
+    regimes = _regimes(report)
+    psnr: dict[tuple[str, str], dict[str, float]] = {}
     for row in report["rows"]:
-        memory = "" if row["peak_memory_mib"] is None else f"{row['peak_memory_mib']:.0f}"
-        lines.append(
-            f"| {row['method']} | {row['knob']} | {row['psnr']:.2f} | {row['ssim']:.3f} | "
-            f"{row['psnr_centre']:.2f} | {row['psnr_ring']:.2f} | {row['seconds']:.3g} | "
-            f"{row['setup_seconds']:.2f} | {memory} |"
-        )
+        key = (row["method"], row["knob"])
+        psnr.setdefault(key, {})[row.get("regime", "matched")] = row["psnr"]
+    lines = [
+        "| method | knob | " + " | ".join(regimes) + " |",
+        "|---|---|" + "---|" * len(regimes),
+    ]
+    for (method, knob), values in psnr.items():
+        cells = [f"{values[r]:.2f}" if r in values else "" for r in regimes]
+        lines.append(f"| {method} | {knob} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def write_markdown(report: dict[str, Any], path: Path) -> None:
+    """The report as Markdown: PSNR per regime, then one full table per regime."""
+    departures = report.get("departures") or {}
+    lines = [
+        "# Work–precision benchmark in every regime",
+        "",
+        f"System {report['system']}; scenes {', '.join(report['scenes'])}. The reconstructors "
+        f"are given the nominal system (its forward model, K = {report['simulator_rank']} for "
+        "the simulator, K = 3 for LSV-ADMM, Wiener and RL); the frames come from the regime's "
+        "instrument (departures below, docs/regimes.md). The **matched** regime is the "
+        f"{INVERSE_CRIME}, at the default sensor noise. Means over scenes; PSNR in dB "
+        f"against the ground truth (data range 1); centre {report['zones']['centre']}, ring "
+        f"{report['zones']['ring']} (normalised field radius). CPU, {report['threads']} "
+        "thread(s), on a 2-core machine shared with other jobs: times are indicative to "
+        "about ±30%. Set-up (operator build, norm estimate, model load) is excluded from "
+        "s/frame. Peak MiB is the rise of the peak resident memory above the resident memory "
+        "before the row: memory the allocator already holds from earlier rows is reused "
+        "without being counted, so small rows after large ones under-report (down to 0). "
+        f"Total run {report['total_seconds'] / 60:.1f} min.",
+    ]
+    if len(_regimes(report)) > 1:
+        lines += ["", "## PSNR (dB) per regime", "", *regime_table(report)]
+    for regime in _regimes(report):
+        lines += ["", f"## {_regime_title(regime)}", ""]
+        changed = departures.get(regime)
+        if changed:
+            nominal = Departures().to_dict()
+            diff = {k: v for k, v in changed.items() if v != nominal[k] and k != "name"}
+            lines += ["Departures: " + ", ".join(f"`{k}` = {v}" for k, v in diff.items()), ""]
+        lines += [
+            "| method | knob | PSNR | SSIM | PSNR centre | PSNR ring | s / frame | set-up s "
+            "| peak MiB |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
+        for row in report["rows"]:
+            if row.get("regime", "matched") != regime:
+                continue
+            memory = "" if row["peak_memory_mib"] is None else f"{row['peak_memory_mib']:.0f}"
+            lines.append(
+                f"| {row['method']} | {row['knob']} | {row['psnr']:.2f} | {row['ssim']:.3f} | "
+                f"{row['psnr_centre']:.2f} | {row['psnr_ring']:.2f} | {row['seconds']:.3g} | "
+                f"{row['setup_seconds']:.2f} | {memory} |"
+            )
     sized = [row for row in report["rows"] if row.get("footprint")]
     if sized:
         lines += [
@@ -413,30 +544,41 @@ def write_markdown(report: dict[str, Any], path: Path) -> None:
 
 
 def plot_pareto(report: dict[str, Any], path: Path) -> None:
-    """Seconds per frame (log) against PSNR, one series per method, Pareto front marked."""
+    """Work–precision per regime: seconds per frame (log) against PSNR, Pareto fronts marked."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    methods = dict.fromkeys(row["method"] for row in report["rows"])
-    for method in methods:
-        rows = [r for r in report["rows"] if r["method"] == method]
-        ax.scatter([r["seconds"] for r in rows], [r["psnr"] for r in rows], label=method)
-        for r in rows:
-            ax.annotate(r["knob"], (r["seconds"], r["psnr"]), fontsize=6,
-                        xytext=(3, 3), textcoords="offset points")  # fmt: skip
-    front = pareto_front([(r["seconds"], r["psnr"]) for r in report["rows"]])
-    if front:
-        ax.plot(*zip(*front, strict=True), "k--", lw=0.8, label="Pareto front")
-    ax.set_xscale("log")
-    ax.set_xlabel("seconds per frame (CPU, log scale)")
-    ax.set_ylabel("PSNR (dB), mean over scenes")
-    ax.set_title(f"Work–precision, {report['system']}")
-    ax.legend(fontsize=7)
+    regimes = _regimes(report)
+    columns = min(3, len(regimes))
+    count = -(-len(regimes) // columns)
+    fig, axes = plt.subplots(count, columns, figsize=(5.2 * columns, 4.0 * count),
+                             squeeze=False, sharey=True)  # fmt: skip
+    methods = list(dict.fromkeys(row["method"] for row in report["rows"]))
+    colours = {m: f"C{i % 10}" for i, m in enumerate(methods)}
+    for ax, regime in zip(axes.flat, regimes, strict=False):
+        rows = [r for r in report["rows"] if r.get("regime", "matched") == regime]
+        for method in methods:
+            mine = [r for r in rows if r["method"] == method]
+            if mine:
+                ax.scatter([r["seconds"] for r in mine], [r["psnr"] for r in mine],
+                           color=colours[method], label=method, s=14)  # fmt: skip
+        front = pareto_front([(r["seconds"], r["psnr"]) for r in rows])
+        if front:
+            ax.plot(*zip(*front, strict=True), "k--", lw=0.8, label="Pareto front")
+        ax.set_xscale("log")
+        ax.set_title(regime + (" (inverse crime)" if regime == "matched" else ""), fontsize=9)
+        ax.set_xlabel("seconds per frame (CPU, log)", fontsize=8)
+        ax.grid(alpha=0.3)
+    for ax in axes.flat[len(regimes):]:
+        ax.axis("off")
+    for ax in axes[:, 0]:
+        ax.set_ylabel("PSNR (dB), mean over scenes", fontsize=8)
+    axes.flat[0].legend(fontsize=6)
+    fig.suptitle(f"Work–precision per regime, {report['system']}")
     fig.tight_layout()
-    fig.savefig(path, dpi=150)
+    fig.savefig(path, dpi=130)
     plt.close(fig)
 
 
@@ -451,7 +593,7 @@ def pareto_front(points: list[tuple[float, float]]) -> list[tuple[float, float]]
 
 
 def merge_reports(earlier: dict[str, Any], report: dict[str, Any]) -> dict[str, Any]:
-    """``report`` with the rows of ``earlier`` whose method it did not run, earlier first.
+    """``report`` with the rows of ``earlier`` whose (regime, method) it did not run.
 
     Raises
     ------
@@ -462,13 +604,20 @@ def merge_reports(earlier: dict[str, Any], report: dict[str, Any]) -> dict[str, 
         if earlier.get(key) != report[key]:
             raise ValueError(f"cannot merge into the earlier report: its {key} is "
                              f"{earlier.get(key)!r}, now {report[key]!r}")  # fmt: skip
-    ran = {row["method"] for row in report["rows"]}
-    kept = [row for row in earlier["rows"] if row["method"] not in ran]
+
+    def key(row: dict[str, Any]) -> tuple[str, str]:
+        return row.get("regime", "matched"), row["method"]
+
+    ran = {key(row) for row in report["rows"]}
+    kept = [row for row in earlier["rows"] if key(row) not in ran]
     notes = [n for n in (earlier.get("note"), report["note"]) if n]
     return {
         **report,
         "total_seconds": earlier["total_seconds"] + report["total_seconds"],
         "note": "; ".join(dict.fromkeys(notes)) or None,
+        "regimes": list(dict.fromkeys([*earlier.get("regimes", []),
+                                       *report.get("regimes", [])])),
+        "departures": {**earlier.get("departures", {}), **report.get("departures", {})},
         "rows": kept + report["rows"],
     }
 
@@ -477,10 +626,18 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Register ``svcode bench``."""
     parser = subparsers.add_parser(
         "bench",
-        help="work–precision benchmark of every method and knob",
+        help="work–precision benchmark of every method and knob in every regime",
         description=__doc__.split("\n\n")[0],
     )
-    parser.add_argument("--quick", action="store_true", help="small version (< 2 min)")
+    parser.add_argument("--quick", action="store_true",
+                        help="small version: two scenes, fewer knobs, every regime (minutes)")
+    parser.add_argument("--regimes", nargs="+", choices=list(REGIMES), default=list(REGIMES),
+                        help="instruments the test frames come from (default: all)")
+    parser.add_argument("--all-knobs", action="store_true",
+                        help="in the matched regime, also SV-CoDe's time-only knobs (mask "
+                        "cache off, bf16, skipping off)")  # fmt: skip
+    parser.add_argument("--rank-sweep", action="store_true",
+                        help="in the matched regime, also LSV-ADMM with K = 1 and 6")
     parser.add_argument("--out", type=Path, default=Path("bench/results"), help="output folder")
     parser.add_argument("--system", default="cm2-mini", help="preset or system JSON")
     parser.add_argument("--weights", type=Path, help="trained SV-CoDe model for its rows")
@@ -503,7 +660,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the benchmark and write ``work_precision.{json,md,png}`` to ``args.out``."""
+    """Run the benchmark and write ``work_precision.{json,md,png}`` to ``args.out``.
+
+    The figure has one work–precision panel per regime.
+    """
     for path in [args.weights, *args.ablations, *args.learned]:
         if path is not None and not path.is_file():
             raise FileNotFoundError(f"weights not found: {path}")
@@ -511,7 +671,8 @@ def run(args: argparse.Namespace) -> int:
     report = run_benchmark(
         load_system(args.system), args.quick, args.weights,
         methods=tuple(args.methods), ablations=tuple(args.ablations),
-        learned=tuple(args.learned),
+        learned=tuple(args.learned), regimes=tuple(args.regimes),
+        all_knobs=args.all_knobs, rank_sweep=args.rank_sweep,
     )  # fmt: skip
     args.out.mkdir(parents=True, exist_ok=True)
     stem = args.out / "work_precision"

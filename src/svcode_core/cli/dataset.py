@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..departures import NAMED_SETS, load_departures
 from ..training import DataRecipe, generate_dataset
 from . import add_system_arguments, chosen_system
 
@@ -28,6 +29,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of objects and split")
     parser.add_argument("--val-fraction", type=float, default=0.1,
                         help="fraction of frames held out for validation (default: 0.1)")
+    parser.add_argument("--departures", metavar="{" + ",".join(NAMED_SETS) + ",FILE}",
+                        help="domain randomisation: every frame from its own draw of the true "
+                        "instrument within these departures (a named set or a JSON file, "
+                        "taken as ranges)")  # fmt: skip
+    parser.add_argument("--instrument-frames", type=int, default=8,
+                        help="consecutive frames sharing one draw of the optical departures "
+                        "(default: 8; each draw costs a new forward model)")  # fmt: skip
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     parser.set_defaults(func=run)
 
@@ -35,7 +43,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     """Generate (or finish) the dataset and print a summary."""
     system = chosen_system(args)
-    recipe = DataRecipe(frames=args.frames, seed=args.seed, val_fraction=args.val_fraction)
+    departures = None if args.departures is None else load_departures(args.departures, system)
+    recipe = DataRecipe(frames=args.frames, seed=args.seed, val_fraction=args.val_fraction,
+                        departures=departures, instrument_frames=args.instrument_frames)
     data = generate_dataset(args.out, system, recipe, progress=not args.no_progress)
-    print(f"{data}: simulation took {data.manifest['seconds']:.1f} s in all")
+    seconds = data.manifest["seconds"]
+    print(f"{data}: simulation took {seconds:.1f} s in all "
+          f"({seconds / max(1, len(data)):.2f} s per frame)")
     return 0

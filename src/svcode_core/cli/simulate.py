@@ -6,6 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
+from ..departures import NAMED_SETS, load_departures
 from ..phantoms import KINDS, from_image, make_object
 from ..simulate import Simulator
 from . import add_system_arguments, chosen_system
@@ -29,6 +30,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--no-noise", action="store_true", help="write the noiseless frame")
     parser.add_argument("--frames", type=int, default=1,
                         help="number of frames T (independent noise draws); T > 1 writes T×H×W")
+    parser.add_argument("--departures", metavar="{" + ",".join(NAMED_SETS) + ",FILE}",
+                        help="simulate the true instrument: a named set of departures from "
+                        "the system, or a departures JSON file; system.json stays nominal "
+                        "and departures.json records them")  # fmt: skip
     parser.set_defaults(func=run)
 
 
@@ -45,16 +50,18 @@ def run(args: argparse.Namespace) -> int:
             f"--object {args.object!r} is neither a phantom kind ({', '.join(KINDS)}) "
             "nor an existing image file"
         )
+    departures = None if args.departures is None else load_departures(args.departures, system)
     start = time.perf_counter()
-    simulator = Simulator(system)
+    simulator = Simulator(system, departures=departures)
     built = time.perf_counter()
     scene = simulator.simulate(obj, seed=args.seed, noise=not args.no_noise,
                                frames=args.frames, progress=args.frames > 1)
     done = time.perf_counter()
     scene.save(args.out, system, extra={"object": str(args.object), "seed": args.seed,
-                                        "noise": not args.no_noise})
+                                        "noise": not args.no_noise}, departures=departures)
     print(
-        f"simulated {args.frames} frame(s) of {args.object!r} with {system.name} "
+        f"simulated {args.frames} frame(s) of {args.object!r} with {system.name}"
+        + ("" if departures is None else f" (departures: {departures.name})") + " "
         f"(K = {simulator.operator.rank}): operator {built - start:.2f} s, "
         f"simulation {done - built:.2f} s -> {args.out}"
     )

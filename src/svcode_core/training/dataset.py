@@ -15,6 +15,14 @@ training reads only the patches it needs. Frames are written in order and ``coun
 updated atomically (temporary file + :func:`os.replace`) after each frame is flushed, so an
 interrupted generation resumes at the first missing frame and never trusts a half-written
 one. Frame ``i`` depends only on ``(seed, i)``: a resumed dataset equals an uninterrupted one.
+
+With ``DataRecipe.departures`` (domain randomisation) every frame comes from its own draw
+of the true instrument (:func:`frame_departures`): the optics are drawn once per block of
+``instrument_frames`` frames (a new forward model costs PSFs and a decomposition), haze and
+camera once per frame. ``views.npy`` then holds each frame's *expected* reading (haze,
+gain and dark-signal maps included) cut at the nominal chief rays, and ``demixed.npy`` the
+lens images registered to those nominal sub-views; the random part of the reading is drawn
+on use with :meth:`TrainingData.frame_sensor`.
 """
 
 from __future__ import annotations
@@ -30,6 +38,8 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ..config import N_LENSES, SystemConfig
+from ..departures import Departures
+from ..noise import SensorModel
 from ..phantoms import make_object
 from ..simulate import Simulator
 
@@ -37,6 +47,7 @@ __all__ = [
     "DATA_FORMAT",
     "DataRecipe",
     "TrainingData",
+    "frame_departures",
     "generate_dataset",
     "split_frames",
     "training_object",
@@ -66,6 +77,11 @@ class DataRecipe:
     brightness : (float, float)
         The object's peak is drawn log-uniformly from this range (dimmer frames see
         relatively more noise).
+    departures : Departures or None
+        Ranges of the true instrument's departures (:meth:`Departures.sample`); ``None``:
+        every frame from the nominal system.
+    instrument_frames : int
+        Consecutive frames sharing one draw of the optical departures.
     """
 
     frames: int
@@ -73,6 +89,8 @@ class DataRecipe:
     val_fraction: float = 0.1
     object_kind: str = "mixed"
     brightness: tuple[float, float] = (0.4, 1.0)
+    departures: Departures | None = None
+    instrument_frames: int = 8
 
     def validate(self) -> DataRecipe:
         """Raise ``ValueError`` naming the first bad field; return ``self``."""
@@ -87,12 +105,34 @@ class DataRecipe:
         if not 0 < low <= high <= 1:
             raise ValueError(f"brightness must satisfy 0 < low <= high <= 1, "
                              f"got {self.brightness!r}")
+        if self.departures is not None:
+            if not isinstance(self.departures, Departures):
+                raise ValueError(f"departures must be Departures, got {self.departures!r}")
+            self.departures.validate()
+        if isinstance(self.instrument_frames, bool) or not isinstance(
+            self.instrument_frames, int
+        ) or self.instrument_frames < 1:
+            raise ValueError(f"instrument_frames must be an integer >= 1, "
+                             f"got {self.instrument_frames!r}")
         return self
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain-JSON form (stored in the manifest)."""
-        return {"frames": self.frames, "seed": self.seed, "val_fraction": self.val_fraction,
+        """Plain-JSON form (stored in the manifest; departures only when set)."""
+        data = {"frames": self.frames, "seed": self.seed, "val_fraction": self.val_fraction,
                 "object_kind": self.object_kind, "brightness": list(self.brightness)}
+        if self.departures is not None:
+            data["departures"] = self.departures.to_dict()
+            data["instrument_frames"] = self.instrument_frames
+        return data
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> DataRecipe:
+        """The recipe of :meth:`to_dict` (as stored in a manifest)."""
+        data = dict(data)
+        data["brightness"] = tuple(data.get("brightness", (0.4, 1.0)))
+        if data.get("departures") is not None:
+            data["departures"] = Departures.from_dict(data["departures"])
+        return cls(**data).validate()
 
 
 def split_frames(frames: int, val_fraction: float, seed: int) -> tuple[list[int], list[int]]:
@@ -107,6 +147,28 @@ def split_frames(frames: int, val_fraction: float, seed: int) -> tuple[list[int]
     n_val = min(frames - 1, max(1, round(frames * val_fraction)))
     order = np.random.default_rng([seed, 0x5EED]).permutation(frames)
     return sorted(order[n_val:].tolist()), sorted(order[:n_val].tolist())
+
+
+def frame_departures(recipe: DataRecipe, index: int) -> Departures | None:
+    """The true instrument of frame ``index``: depends only on ``(recipe.seed, index)``.
+
+    The optical departures (and the seed fixing jitter and fixed-pattern maps) are drawn
+    from ``recipe.departures`` once per block ``index // instrument_frames``; haze and
+    camera levels once per frame.
+
+    Returns
+    -------
+    Departures or None
+        ``None`` for a recipe without departures.
+    """
+    ranges = recipe.departures
+    if ranges is None:
+        return None
+    block = index // recipe.instrument_frames
+    optics = ranges.sample(np.random.default_rng([recipe.seed, block, 0x0971C5]))
+    frame = ranges.sample(np.random.default_rng([recipe.seed, index, 0xF4A3E]),
+                          name=f"{ranges.name}, frame {index}")  # fmt: skip
+    return frame.with_optics_of(optics)
 
 
 def training_object(recipe: DataRecipe, index: int, size: int) -> np.ndarray:
@@ -158,6 +220,25 @@ class TrainingData:
         self.views, self.demixed, self.objects = (arrays[n][:count] for n in _ARRAYS)
         self.train_frames = [i for i in self.manifest["train_frames"] if i < count]
         self.val_frames = [i for i in self.manifest["val_frames"] if i < count]
+        self.recipe = DataRecipe.from_dict(self.manifest["recipe"])
+
+    def frame_departures(self, index: int) -> Departures | None:
+        """The departures frame ``index`` was simulated with (``None``: nominal)."""
+        return frame_departures(self.recipe, index)
+
+    def frame_sensor(self, index: int) -> SensorModel:
+        """The camera that reads frame ``index``: ``.read(expected, generator)`` draws noise.
+
+        The stored views already hold the frame's fixed-pattern maps, so the model has
+        none; it carries the frame's photon level, read noise, saturation and ADC (the
+        nominal ``system.noise`` for a dataset without departures). Its ``read`` acts
+        pixel by pixel, so it applies to patches of the views as well as to whole frames.
+        """
+        from ..instrument import sensor_model
+
+        departures = self.frame_departures(index) or Departures()
+        sensor = sensor_model(self.system.noise, departures, (1, 1))
+        return SensorModel(sensor.noise, adc_bits=sensor.adc_bits)
 
     def __len__(self) -> int:
         return len(self.views)
@@ -247,6 +328,9 @@ def generate_dataset(
             "recipe": recipe.to_dict(),
             "object_seeds": "frame i: numpy.random.default_rng([seed, i])",
             "noise": "none stored: drawn afresh by the patch sampler",
+            "departures": (None if recipe.departures is None else
+                           "frame i: frame_departures(recipe, i); views hold the expected "
+                           "reading of that instrument"),  # fmt: skip
             "dtype": "float32",
             "shapes": {name: list(shape) for name, shape in shapes.items()},
             "train_frames": train,
@@ -262,6 +346,9 @@ def generate_dataset(
         for index in tqdm(range(start, recipe.frames), initial=start, total=recipe.frames,
                           desc="simulate frames", disable=not progress):
             obj = training_object(recipe, index, size)
+            departures = frame_departures(recipe, index)
+            if departures is not None:  # reuses the forward model within a block
+                simulator = simulator.with_departures(departures)
             scene = simulator.simulate(obj, seed=0, noise=False)
             arrays["views"][index] = scene.views
             arrays["demixed"][index] = scene.demixed

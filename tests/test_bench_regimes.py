@@ -1,0 +1,53 @@
+"""``svcode bench`` in every regime: the departed instruments, the report and its figure."""
+
+import json
+
+import numpy as np
+
+from svcode_core.cli import main
+from svcode_core.cli.bench import INVERSE_CRIME, REGIMES, SCENES, merge_reports
+from svcode_core.phantoms import HELD_OUT_IMAGES
+
+
+def test_scenes_include_every_held_out_image():
+    kinds = {name: kind for name, kind, _ in SCENES}
+    for image in HELD_OUT_IMAGES:
+        assert kinds[image.removesuffix(".png")] == "held-out"
+
+
+def test_quick_bench_runs_every_regime(tiny_system, tmp_path, capsys):
+    system_json = tiny_system.save(tmp_path / "tiny.json")
+    out = tmp_path / "results"
+    assert main(["bench", "--quick", "--system", str(system_json), "--methods", "admm",
+                 "deconvolution", "--out", str(out)]) == 0
+    report = json.loads((out / "work_precision.json").read_text())
+    assert report["regimes"] == list(REGIMES)
+    assert report["departures"]["matched"] is None
+    assert report["departures"]["realistic"]["photons"] == 1000.0
+    for regime in REGIMES:
+        rows = [r for r in report["rows"] if r["regime"] == regime]
+        assert {r["method"] for r in rows} == {"LSV-ADMM", "Wiener", "Richardson-Lucy"}
+        assert all(np.isfinite(r["psnr"]) and r["seconds"] > 0 for r in rows)
+    text = (out / "work_precision.md").read_text()
+    assert f"## matched ({INVERSE_CRIME})" in text and "## PSNR (dB) per regime" in text
+    assert "`photons` = 200.0" in text  # the low-light departures are listed
+    assert (out / "work_precision.png").stat().st_size > 0
+    # rerunning one regime with --merge keeps the other regimes' rows
+    assert main(["bench", "--quick", "--system", str(system_json), "--methods", "deconvolution",
+                 "--regimes", "background", "--merge", "--out", str(out)]) == 0
+    merged = json.loads((out / "work_precision.json").read_text())
+    assert len(merged["rows"]) == len(report["rows"])
+    assert merged["regimes"] == list(REGIMES)
+    assert "[realistic]" in capsys.readouterr().out
+
+
+def test_merge_keys_rows_by_regime_and_method():
+    base = {"system": "tiny", "scenes": ["a"], "quick": True, "simulator_rank": 3,
+            "total_seconds": 1.0, "note": None}  # fmt: skip
+    earlier = {**base, "regimes": ["matched", "model"], "rows": [
+        {"regime": "matched", "method": "Wiener", "psnr": 1.0},
+        {"regime": "model", "method": "Wiener", "psnr": 2.0}]}  # fmt: skip
+    now = {**base, "regimes": ["model"], "rows": [{"regime": "model", "method": "Wiener",
+                                                   "psnr": 3.0}]}  # fmt: skip
+    merged = merge_reports(earlier, now)
+    assert [(r["regime"], r["psnr"]) for r in merged["rows"]] == [("matched", 1.0), ("model", 3.0)]
