@@ -439,16 +439,46 @@ def _bundled_images() -> tuple[np.ndarray, ...]:
     inside = ndimage.distance_transform_edt(fundus[..., 0] > 0.08) > 12
     vessel_map = np.clip(ndimage.gaussian_filter(green, 6) - green, 0, None) * inside
     vessel_map = normalize_object(vessel_map, background_percentile=80.0, upper_percentile=99.9)
-    for image in (sky, vessel_map):
+    images = [sky, vessel_map]
+    for name in TRAINING_PHOTOS:
+        image = skimage.io.imread(folder / name)
+        grey = skimage.color.rgb2gray(image[..., :3]) if image.ndim == 3 else image / 255.0
+        step = max(1, min(grey.shape) // 512)  # keep each map small in memory
+        images.append(np.asarray(grey[::step, ::step], dtype=np.float32))
+    for image in images:
         image.flags.writeable = False  # shared by every call
-    return sky, vessel_map
+    return tuple(images)
+
+
+TRAINING_PHOTOS = (
+    "astronaut.png", "brick.png", "camera.png", "chelsea.png", "coffee.png", "coins.png",
+    "grass.png", "gravel.png", "horse.png", "moon.png", "page.png", "rocket.jpg", "text.png",
+)  # fmt: skip
+"""Photographs inside scikit-image's data folder used as training textures (besides the
+Hubble deep field and the retina): grey levels turned into bright-on-dark maps by
+:func:`skimage_crop`. Disjoint from :data:`HELD_OUT_IMAGES`, which only benchmarks use."""
+
+
+def _fluorescence_map(crop: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A grey-level crop as a fluorescence-like map: as is, inverted, or its local
+    contrast, with a random share of the dimmest pixels cut to a dark background."""
+    choice = rng.integers(3)
+    if choice == 1:
+        crop = crop.max() - crop
+    elif choice == 2:
+        crop = np.abs(crop - ndimage.gaussian_filter(crop, rng.uniform(2.0, 8.0)))
+    return normalize_object(crop, background_percentile=float(rng.uniform(0.0, 80.0)))
 
 
 def skimage_crop(size: int, rng: np.random.Generator) -> np.ndarray:
     """A random crop, 90° rotation and flip of an image bundled with scikit-image.
 
-    The crop side is 25 % to 100 % of the image's short side (so the scale varies), and the
-    crop is resized with anti-aliasing to ``size × size``.
+    The Hubble deep field and the retina's vessels are used as they are; the photographs
+    of :data:`TRAINING_PHOTOS` become bright-on-dark maps (:func:`_fluorescence_map`:
+    grey levels, inverted, or local contrast, over a dark background of random extent),
+    so the content ranges from sparse to dense. The crop side is 25 % to 100 % of the
+    image's short side (so the scale varies), and the crop is resized with anti-aliasing
+    to ``size × size``. :data:`HELD_OUT_IMAGES` are never used.
 
     Returns
     -------
@@ -465,11 +495,14 @@ def skimage_crop(size: int, rng: np.random.Generator) -> np.ndarray:
     if rng.random() < 0.5:
         crop = crop[:, ::-1]
     resized = skimage.transform.resize(crop, (size, size), order=1, anti_aliasing=True)
-    return normalize_object(resized, background_percentile=0.0)
+    if image is images[0] or image is images[1]:
+        return normalize_object(resized, background_percentile=0.0)
+    return _fluorescence_map(resized, rng)
 
 
 def mixed(size: int, rng: np.random.Generator) -> np.ndarray:
-    """One kind at random (70 %) or a blend of two different kinds (30 %), for diversity.
+    """One kind at random (70 %) or a blend of two different kinds (30 %), for diversity;
+    30 % of the draws sit on a smooth in-focus background of 5–30 % of the peak.
 
     Returns
     -------
@@ -477,12 +510,17 @@ def mixed(size: int, rng: np.random.Generator) -> np.ndarray:
         float32 ``(size, size)`` in ``[0, 1]``.
     """
     names = ["beads", "cells", "vessels", "neurons", "skimage"]
-    chosen = rng.choice(names, size=2, replace=False, p=[0.25, 0.2, 0.2, 0.2, 0.15])
+    chosen = rng.choice(names, size=2, replace=False, p=[0.2, 0.2, 0.15, 0.15, 0.3])
     first = KINDS[str(chosen[0])](size, rng)
     if rng.random() < 0.7:
-        return first
-    weight = rng.uniform(0.3, 0.7)
-    return _to_unit(weight * first + (1 - weight) * KINDS[str(chosen[1])](size, rng))
+        out = first
+    else:
+        weight = rng.uniform(0.3, 0.7)
+        out = _to_unit(weight * first + (1 - weight) * KINDS[str(chosen[1])](size, rng))
+    if rng.random() < 0.3:  # in-focus autofluorescence: a smooth floor under the structures
+        floor = _smooth_noise(rng, size, size / rng.uniform(2.0, 8.0))
+        out = _to_unit(out + rng.uniform(0.05, 0.3) * (floor - floor.min()) / np.ptp(floor))
+    return out
 
 
 KINDS: dict[str, Callable[..., np.ndarray]] = {

@@ -159,10 +159,18 @@ def _multiply(y: torch.Tensor, masks: tuple[torch.Tensor, ...]) -> torch.Tensor:
     """``y`` multiplied by the mask of each tile: in place (``y`` is a temporary) without
     gradient, out of place (the product needs ``y``) with it."""
     if torch.is_grad_enabled():
-        return (_tiles(y, len(masks)) * torch.stack(masks)).view_as(y)
+        return (_tiles(y, len(masks)) * _batched(masks)).view_as(y)
     for tile, mask in zip(_tiles(y, len(masks)), masks, strict=True):
         tile.mul_(mask)
     return y
+
+
+def _batched(masks: tuple[torch.Tensor, ...]) -> torch.Tensor:
+    """The tiles' masks as one ``(B or 1, lenses, C, h, w)`` tensor: tiles that share one
+    mask (training runs at one origin) broadcast it instead of copying it."""
+    if all(m is masks[0] for m in masks):
+        return masks[0].unsqueeze(0)
+    return torch.stack(masks)
 
 
 def _add_product(
@@ -171,7 +179,7 @@ def _add_product(
     """``x + mask ⊙ z`` tile by tile, in one pass per tile."""
     batch = len(masks)
     if torch.is_grad_enabled():
-        return (_tiles(x, batch) + torch.stack(masks) * _tiles(z, batch)).view_as(x)
+        return (_tiles(x, batch) + _batched(masks) * _tiles(z, batch)).view_as(x)
     dtype = torch.promote_types(torch.promote_types(x.dtype, z.dtype), masks[0].dtype)
     out = torch.empty_like(x, dtype=dtype)
     for o, xb, m, zb in zip(_tiles(out, batch), _tiles(x, batch), masks, _tiles(z, batch),
