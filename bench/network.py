@@ -4,16 +4,22 @@ Two scales:
   * ``cm2-mini``: ``ModelConfig.mini()``, a batch of 4 tiles of 96 × 96 (S = 384);
   * ``paper``: ``ModelConfig.reference()``, one tile of 480 × 480 (S = 2400).
 
-Variants: the plain NAFNet of the same widths (``coord_gate=False``), SV-CoDe with masks
-computed on every call, and SV-CoDe with the mask cache warm (the tile grid was seen once
-before, as for every frame after the first of a stack) under the default 1 GiB budget. The
-cache holds each CoDe block's folded masks over the whole sub-view; the ``field (MiB)``
-column is what a whole ``S × S`` sub-view needs (``mask_field_bytes``). At paper scale that
-is ~50 GiB, so under 1 GiB most masks are still computed per call; the ``cached-full`` row
-runs the same tile as the whole sub-view (``S = 480``) so every mask is cached: the
-per-call work is that of a fully cached ``S = 2400`` field (same tile, same masks read),
-only the field is smaller. Inference is under ``torch.inference_mode``; latency is the
-median of ``--iters`` calls after one warm-up call.
+Variants: the plain NAFNet of the same widths (``coord_gate=False``); SV-CoDe with its
+masks on a lattice (``lattice``, the presets' default ``mask_spacing``: MLPs on coarse
+nodes, bilinear interpolation, no cache); and SV-CoDe with exact per-pixel masks
+(``mask_spacing = 0``, as models written before the lattice) computed on every call
+(``uncached``) or with the mask cache warm (``cached``: the tile grid was seen once
+before, as for every frame after the first of a stack) under the default 1 GiB budget.
+The cache holds each CoDe block's folded masks over the whole sub-view; the ``field
+(MiB)`` column is what a whole ``S × S`` sub-view needs (``mask_field_bytes``). At paper
+scale that is ~50 GiB, so under 1 GiB most masks are still computed per call; the
+``cached-full`` row runs the same tile as the whole sub-view (``S = 480``) so every mask
+is cached. Inference is under ``torch.inference_mode``; latency is the median of
+``--iters`` calls after one warm-up call, in wall time and in process CPU time (the ratios
+use CPU time, which other jobs on the machine disturb less). FLOPs per call are counted
+once with ``torch.utils.flop_counter`` (convolutions and matrix products: element-wise
+work such as the masks themselves is not counted), and GFLOP/s is that count over the
+wall latency.
 
 Peak memory: every variant runs in a fresh process; a sampling thread reads the process
 resident set size (psutil) every 2 ms and the peak above the level just before the first
@@ -36,6 +42,7 @@ from pathlib import Path
 
 import psutil
 import torch
+from torch.utils.flop_counter import FlopCounterMode
 
 from svcode_core.network import ModelConfig, SVCoDe
 
@@ -44,8 +51,8 @@ SCALES = {
     "cm2-mini": {"config": "mini", "tile": 96, "batch": 4, "sub_view": 384, "stride": 48},
     "paper": {"config": "reference", "tile": 480, "batch": 1, "sub_view": 2400, "stride": 240},
 }
-VARIANTS = ("plain", "uncached", "cached", "cached-full")
-SCALE_VARIANTS = {"cm2-mini": VARIANTS[:3], "paper": VARIANTS}
+VARIANTS = ("plain", "lattice", "uncached", "cached", "cached-full")
+SCALE_VARIANTS = {"cm2-mini": VARIANTS[:4], "paper": VARIANTS}
 DEFAULT_BUDGET = 2**30
 
 
@@ -81,6 +88,8 @@ def measure(scale: str, variant: str, iters: int, threads: int) -> dict:
     config = getattr(ModelConfig, spec["config"])()
     if variant == "plain":
         config = config.replace(coord_gate=False)
+    elif variant != "lattice":
+        config = config.replace(mask_spacing=0)
     torch.manual_seed(0)
     model = SVCoDe(config).eval()
     tile, batch = spec["tile"], spec["batch"]
@@ -90,21 +99,27 @@ def measure(scale: str, variant: str, iters: int, threads: int) -> dict:
     if variant.startswith("cached"):
         model.cache_masks(max_bytes=max(DEFAULT_BUDGET, model.mask_field_bytes(sub_view))
                           if variant == "cached-full" else DEFAULT_BUDGET)
-    times = []
+    times, cpu_times = [], []
     with PeakRSS() as rss, torch.inference_mode():
         model(views, origins, sub_view)  # warm-up (fills the cache)
         for _ in range(iters):
-            start = time.perf_counter()
+            start, cpu = time.perf_counter(), time.process_time()
             model(views, origins, sub_view)
             times.append(time.perf_counter() - start)
+            cpu_times.append(time.process_time() - cpu)
+    with FlopCounterMode(display=False) as counter, torch.inference_mode():
+        model(views, origins, sub_view)
     info = model.mask_cache_info()
-    field = model.mask_field_bytes(spec["sub_view"]) if variant != "plain" else 0
+    field = model.mask_field_bytes(spec["sub_view"]) if variant not in ("plain", "lattice") else 0
     return {
         "scale": scale,
         "variant": variant,
         "parameters": sum(p.numel() for p in model.parameters()),
         "mlp_parameters": sum(p.numel() for n, p in model.named_parameters() if ".mlp." in n),
         "latency_s": statistics.median(times),
+        "cpu_s": statistics.median(cpu_times),
+        "gflop": counter.get_total_flops() / 1e9,
+        "gflop_per_s": counter.get_total_flops() / 1e9 / statistics.median(times),
         "peak_mib": rss.megabytes,
         "cache_mib": info["bytes"] / 2**20,
         "field_mib": field / 2**20,
@@ -144,7 +159,7 @@ def main() -> None:
     for scale in {r["scale"] for r in rows}:
         by = {r["variant"]: r for r in rows if r["scale"] == scale}
         for variant in set(by) - {"plain"}:
-            by[variant]["latency_vs_plain"] = by[variant]["latency_s"] / by["plain"]["latency_s"]
+            by[variant]["latency_vs_plain"] = by[variant]["cpu_s"] / by["plain"]["cpu_s"]
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "network.json").write_text(json.dumps(rows, indent=2) + "\n")
     (RESULTS / "network.md").write_text(_markdown(rows))
@@ -162,22 +177,27 @@ def _markdown(rows: list[dict]) -> str:
         "",
         "CPU (shared with other jobs: absolute times are noisy), float32, "
         "`torch.inference_mode`. Latency: median per forward call (demixing + "
-        "reconstruction) of the whole batch. Peak: resident "
+        "reconstruction) of the whole batch, wall and process CPU time; × plain is the "
+        "CPU-time ratio. GFLOP: convolutions and matrix products per call "
+        "(`torch.utils.flop_counter`); GFLOP/s over the wall latency. Peak: resident "
         "memory above the level before the first call, fresh process per row (includes the "
         "mask cache). Cache budget 1 GiB; field: cache needed for a whole S × S sub-view "
         "(float32). `cached-full`: the tile is the whole sub-view (S = 480) so every mask is "
-        "cached. Target: cached SV-CoDe ≤ 1.15 × plain NAFNet.",
+        "cached. `lattice`: masks on the preset's lattice (`mask_spacing`), no cache. "
+        "Target: SV-CoDe ≤ 1.15 × plain NAFNet.",
         "",
         "| scale | tile × batch | S | threads | variant | params (M) | MLP params (M) "
-        "| latency (ms) | × plain | peak (MiB) | cache (MiB) | field (MiB) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| latency (ms) | CPU (ms) | × plain | GFLOP | GFLOP/s | peak (MiB) | cache (MiB) "
+        "| field (MiB) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         ratio = f"{r['latency_vs_plain']:.2f}" if "latency_vs_plain" in r else "1"
         lines.append(
             f"| {r['scale']} | {r['tile']}² × {r['batch']} | {r['sub_view']} | {r['threads']} "
             f"| {r['variant']} | {r['parameters'] / 1e6:.3f} | {r['mlp_parameters'] / 1e6:.3f} "
-            f"| {r['latency_s'] * 1e3:.1f} | {ratio} | {r['peak_mib']:.0f} "
+            f"| {r['latency_s'] * 1e3:.1f} | {r['cpu_s'] * 1e3:.1f} | {ratio} "
+            f"| {r['gflop']:.1f} | {r['gflop_per_s']:.1f} | {r['peak_mib']:.0f} "
             f"| {r['cache_mib']:.0f} | {r['field_mib']:.0f} |"
         )
     return "\n".join(lines) + "\n"

@@ -384,13 +384,14 @@ class Trainer:
         if resume:
             self.load_checkpoint()
         for epoch in range(self.epoch, self.config.epochs):
-            start = time.perf_counter()
+            start, cpu_start = time.perf_counter(), time.process_time()
             record: dict[str, float] = {"epoch": epoch + 1}
             record.update(self.train_epoch(epoch))
             record.update(self.validate())
             record["lr"] = self.scheduler.get_last_lr()[0]
             record["step"] = self.global_step
             record["seconds"] = round(time.perf_counter() - start, 3)
+            record["cpu_seconds"] = round(time.process_time() - cpu_start, 3)  # all threads
             self.history.append(record)
             self.epoch = epoch + 1
             if self.dist.is_main:
