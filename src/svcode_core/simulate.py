@@ -12,10 +12,19 @@ from tqdm.auto import tqdm
 from .cm2 import CM2Operator
 from .config import SystemConfig
 from .geometry import extract_sub_views, pad_sensor_frame
-from .io import write_tiff
+from .io import write_json_atomic, write_tiff
 from .noise import apply_sensor_noise
+from .outputs import OutputLock
+from .scene_checks import check_system_geometry
 
-__all__ = ["Simulation", "Simulator"]
+__all__ = ["Simulation", "Simulator", "scene_files"]
+
+SCENE_FILES = ("measurement.tif", "views.tif", "demixed.tif", "object.tif", "system.json")
+
+
+def scene_files(out_dir: str | Path) -> dict[str, Path]:
+    """The files :meth:`Simulation.save` writes to ``out_dir``, by name."""
+    return {name: Path(out_dir) / name for name in SCENE_FILES}
 
 
 @dataclass
@@ -44,9 +53,12 @@ class Simulation:
         ``system.json`` to ``out_dir``; every TIFF records the system and ``extra``."""
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
-        for name in ("measurement", "views", "demixed", "object"):
-            write_tiff(out_dir / f"{name}.tif", getattr(self, name), system, kind=name, extra=extra)
-        system.save(out_dir / "system.json")
+        files = scene_files(out_dir)
+        with OutputLock(out_dir / "scene"):  # one writer at a time: no mixed scenes
+            for name in ("measurement", "views", "demixed", "object"):
+                write_tiff(files[f"{name}.tif"], getattr(self, name), system, kind=name,
+                           extra=extra)  # fmt: skip
+            write_json_atomic(files["system.json"], system.to_dict())
         return out_dir
 
 
@@ -56,6 +68,8 @@ class Simulator:
     Parameters
     ----------
     system : SystemConfig
+        Refused if none of its chief rays lies on the sensor; warned about if some do not,
+        or if two coincide (:func:`~svcode_core.scene_checks.check_system_geometry`).
     operator : CM2Operator, optional
         Default: :meth:`CM2Operator.from_system` (pupil-model PSFs, ``system.rank``).
     device, dtype
@@ -77,6 +91,7 @@ class Simulator:
         dtype: torch.dtype = torch.float32,
     ) -> None:
         self.system = system.validate()
+        check_system_geometry(self.system)
         self.operator = operator or CM2Operator.from_system(system, dtype=dtype, device=device)
 
     def simulate(
