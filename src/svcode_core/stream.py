@@ -76,7 +76,10 @@ class FrameReader:
         self.path = Path(path)
         if not self.path.is_file():
             raise FileNotFoundError(f"no such file: {self.path}")
-        self._tif = tifffile.TiffFile(self.path)
+        try:
+            self._tif = tifffile.TiffFile(self.path)
+        except (tifffile.TiffFileError, ValueError) as err:
+            raise ValueError(f"{self.path}: not a readable TIFF ({err})") from None
         series = self._tif.series[0]
         self.shape = tuple(series.shape)
         if len(self.shape) not in (2, 3):

@@ -132,6 +132,9 @@ def _spec(args: argparse.Namespace, system) -> ReconstructorSpec | BaselineSpec 
     if args.method in LEARNED:
         return _learned_spec(args, system)
     if args.method != "svcode":
+        if args.tile is not None or args.stride is not None:
+            raise ValueError(f"--tile and --stride apply to --method svcode, not to "
+                             f"--method {args.method} (it does not tile)")  # fmt: skip
         return BaselineSpec(args.method, system, {
             "device": args.device, "precision": args.precision, **baseline_options(args)
         })
