@@ -16,11 +16,8 @@ from svcode_core import outputs
 from svcode_core.baselines import reconstruct_with_baseline
 from svcode_core.cli import main
 from svcode_core.io import read_tiff, write_tiff
-from svcode_core.network import ModelConfig, SVCoDe, save_model
 from svcode_core.outputs import OutputLock
 
-TINY_MODEL = ModelConfig(width=4, view_width=2, demix_enc_blocks=(1,), demix_dec_blocks=(1,),
-                         recon_enc_blocks=(1,), recon_dec_blocks=(1,), mlp_hidden=8, pe_bands=2)
 BOOKKEEPING = (".partial", ".done.npy", ".resume.json", ".lock")
 
 
@@ -35,9 +32,8 @@ def scene(tiny_system, tmp_path):
 
 
 @pytest.fixture
-def weights(tiny_system, tmp_path):
-    torch.manual_seed(0)
-    return save_model(tmp_path / "tiny.safetensors", SVCoDe(TINY_MODEL.validate()), tiny_system)
+def weights(tiny_weights):
+    return tiny_weights
 
 
 def run(capsys, *argv) -> tuple[int, str]:
