@@ -91,6 +91,13 @@ def test_views_or_bookkeeping_onto_the_input_is_refused(scene, capsys):
     assert names(scene) == ["out.tif.partial", "system.json"]
 
 
+def test_out_onto_the_system_json_beside_the_input_is_refused(scene, capsys):
+    before = (scene / "system.json").read_bytes()
+    status, err = wiener(capsys, scene / "meas.tif", scene / "system.json")
+    assert status == 2 and "the system.json beside the input" in err
+    assert (scene / "system.json").read_bytes() == before
+
+
 def test_out_onto_the_weights_or_system_file_is_refused(scene, weights, capsys):
     before = weights.read_bytes()
     status, err = run(capsys, "reconstruct", scene / "meas.tif", "--out", weights,
@@ -98,8 +105,9 @@ def test_out_onto_the_weights_or_system_file_is_refused(scene, weights, capsys):
     assert status == 2
     one_error_line(err, "same file as the input", "(--weights)")
     assert weights.read_bytes() == before
-    status, err = wiener(capsys, scene / "meas.tif", scene / "system.json",
-                         "--system", scene / "system.json")
+    other = scene / "other.json"
+    other.write_bytes((scene / "system.json").read_bytes())
+    status, err = wiener(capsys, scene / "meas.tif", other, "--system", other)
     assert status == 2 and "(--system)" in err
 
 
@@ -294,6 +302,8 @@ def test_the_core_rule_holds_for_the_api(tiny_system):
     assert np.abs(result - expected).max() <= 1e-3 * np.abs(expected).max()
     with pytest.raises(ValueError, match="booleans"):
         as_frame_stack(frame > 0.5)
+    with pytest.raises(ValueError, match="real numbers"):
+        reconstruct_with_baseline("wiener", frame.astype(np.complex64), tiny_system)
     with pytest.raises(ValueError, match="far above"):
         reconstruct_with_baseline("wiener", frame * 1e4, tiny_system)
 
@@ -460,6 +470,14 @@ def test_an_interrupted_run_keeps_its_files_and_resumes(scene, tiny_system, caps
 
 
 # ---------------------------------------------------------------- 6. one-line messages
+def test_simulate_zero_frames_is_refused_first(scene, capsys):
+    status, err = run(capsys, "simulate", "--system", scene / "system.json", "--frames", "0",
+                      "--out", scene / "sim")
+    assert status == 2
+    one_error_line(err, "--frames must be >= 1")
+    assert not (scene / "sim").exists()
+
+
 def test_simulate_onto_an_existing_file_is_one_line(scene, capsys):
     status, err = run(capsys, "simulate", "--system", scene / "system.json", "--out",
                       scene / "meas.tif")
@@ -491,6 +509,9 @@ def test_missing_and_unreadable_inputs_are_one_line(scene, capsys):
     status, err = wiener(capsys, scene / "nope.tif", scene / "out.tif")
     assert status == 2
     one_error_line(err, "nope.tif")
+    status, err = wiener(capsys, scene, scene / "out.tif")
+    assert status == 2
+    one_error_line(err, "is a directory, not a TIFF file")
     (scene / "text.tif").write_text("not a tiff")
     status, err = wiener(capsys, scene / "text.tif", scene / "out.tif")
     assert status == 2

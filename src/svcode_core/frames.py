@@ -149,12 +149,15 @@ def finite_frame(
     Raises
     ------
     ValueError
-        For NaN or Inf (naming the count), booleans, integers wider than 16 bits without a
-        ``scale``, a frame with no positive value, or one far above the full scale.
+        For NaN or Inf (naming the count), booleans or other non-real values, integers
+        wider than 16 bits without a ``scale``, a frame with no positive value, or one far
+        above the full scale.
     """
     raw = np.asarray(frame)
     if raw.dtype.kind == "b":
         raise ValueError(f"frame {index} holds booleans (a mask?), not sensor readings")
+    if raw.dtype.kind not in "iuf":
+        raise ValueError(f"frame {index} must hold real numbers, got dtype {raw.dtype}")
     if scale is not None:
         if not (np.isfinite(scale) and scale > 0):
             raise ValueError(f"input scale must be a finite number > 0, got {scale!r}")

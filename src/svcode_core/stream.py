@@ -30,6 +30,7 @@ Safety
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import sys
@@ -74,6 +75,8 @@ class FrameReader:
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
+        if self.path.is_dir():
+            raise IsADirectoryError(errno.EISDIR, f"{self.path} is a directory, not a TIFF file")
         if not self.path.is_file():
             raise FileNotFoundError(f"no such file: {self.path}")
         try:
@@ -382,7 +385,10 @@ def reconstruct_file(
             )
         check_frame_shape(reader.shape[-2:], system)
         require_frames(len(reader), reader.path.name)
-        check_outputs(_written_files(out_path, views), {"input": reader.path, **(inputs or {})})
+        beside = reader.path.with_name("system.json")
+        read = {"input": reader.path, "the system.json beside the input":
+                beside if beside.is_file() else None, **(inputs or {})}  # fmt: skip
+        check_outputs(_written_files(out_path, views), read)
         frames = _CheckedFrames(reader, input_scale)
         frames.check_all()
         with contextlib.ExitStack() as locks:

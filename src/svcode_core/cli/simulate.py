@@ -36,6 +36,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Simulate and write the files; print a one-line summary."""
+    if args.frames < 1:
+        raise ValueError(f"--frames must be >= 1, got {args.frames}")
     system = chosen_system(args)
     size = system.sub_view_size
     image = Path(args.object) if args.object not in KINDS else None
