@@ -23,9 +23,11 @@ Range
     NaN or Inf, a frame with no positive value (all negative: a sign or dark-frame error;
     after the usual clipping at 0 nothing would be left) and a frame reaching more than
     :data:`FAR_ABOVE` (10× the full scale: raw counts or another unit) are refused with a
-    :class:`ValueError` naming the frame and the fix. Values above the full scale but below
-    that limit are reconstructed as they are, with a warning. An all-zero frame is valid
-    (its reconstruction is zero).
+    :class:`ValueError` naming the frame and the fix. Frames between :data:`WARN_ABOVE` (2×)
+    and that limit are reconstructed as they are, with a warning (a scale off by a few bits?).
+    Noiseless simulated frames can exceed the full scale a little where views overlap (the
+    sensor model clips real readings), so up to 2× passes silently. An all-zero frame is
+    valid (its reconstruction is zero).
 """
 
 from __future__ import annotations
@@ -35,12 +37,21 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["FAR_ABOVE", "FULL_SCALE", "as_frame_stack", "finite_frame", "require_frames"]
+__all__ = [
+    "FAR_ABOVE",
+    "FULL_SCALE",
+    "WARN_ABOVE",
+    "as_frame_stack",
+    "finite_frame",
+    "require_frames",
+]
 
 FULL_SCALE = 1.0
 """Normalised value of the sensor's full scale."""
 FAR_ABOVE = 10.0 * FULL_SCALE
 """Frames reaching beyond this are refused: they are not in normalised units."""
+WARN_ABOVE = 2.0 * FULL_SCALE
+"""Frames reaching beyond this (up to :data:`FAR_ABOVE`) are reconstructed with a warning."""
 _SCALE_HINT = (
     "divide by the sensor's full-scale count (svcode reconstruct --input-scale COUNTS, "
     "e.g. 4095 for a 12-bit sensor), or convert the frames to float32 with full scale 1.0"
@@ -115,11 +126,11 @@ def _check_range(values: np.ndarray, index: int) -> None:
             "negative readings are clipped at 0, so nothing would be left: check the sign "
             "and any dark-frame subtraction"
         )
-    if top > FULL_SCALE:
+    if top > WARN_ABOVE:
         warnings.warn(
-            f"frames reach above the sensor's full scale {FULL_SCALE:g} (up to "
-            f"{FAR_ABOVE:g}); they are reconstructed as they are, but the models were "
-            "trained on readings up to the full scale",
+            f"frames reach more than {WARN_ABOVE / FULL_SCALE:g}× the sensor's full scale "
+            f"{FULL_SCALE:g} (refused beyond {FAR_ABOVE:g}); they are reconstructed as they "
+            "are, but a real sensor clips at its full scale: check the input scale",
             UserWarning,
             stacklevel=2,
         )
