@@ -33,3 +33,15 @@ def tiny_system() -> SystemConfig:
         rank_tolerance=1e-2,
     )
     return system.validate()
+
+
+@pytest.fixture
+def tiny_weights(tiny_system, tmp_path):
+    """A small random SV-CoDe model of ``tiny_system``, saved as ``tiny.safetensors``."""
+    from svcode_core.network import ModelConfig, SVCoDe, save_model
+
+    config = ModelConfig(width=4, view_width=2, demix_enc_blocks=(1,), demix_dec_blocks=(1,),
+                         recon_enc_blocks=(1,), recon_dec_blocks=(1,), mlp_hidden=8,
+                         pe_bands=2)
+    torch.manual_seed(0)
+    return save_model(tmp_path / "tiny.safetensors", SVCoDe(config.validate()), tiny_system)

@@ -165,3 +165,34 @@ def test_non_finite_frames_raise(tiny_system, op):
     for method in METHODS:
         with pytest.raises(ValueError, match="NaN or Inf"):
             reconstruct_with_baseline(method, raw, tiny_system, operator=op)
+
+
+# ------------------------------------------------------------------ the SV-CoDe network
+def test_network_battery(tiny_system, tiny_weights):
+    """The battery of bench/stability.py through a small random SV-CoDe model of the tiny
+    system: every case finite (and bounded) or a clear error."""
+    from svcode_core.reconstruct import Reconstructor
+    from svcode_core.simulate import Simulator
+    from svcode_core.stability import run_case, stability_cases
+
+    def build(precision, skip_empty):
+        return Reconstructor.from_weights(tiny_weights, precision=precision,
+                                          skip_empty=skip_empty)  # fmt: skip
+
+    rows = {case.name: run_case(build, case) for case in stability_cases(Simulator(tiny_system))}
+    assert len(rows) == 12
+    for name, row in rows.items():
+        assert ("error" in row) or row["finite"], name
+        if "error" not in row:
+            assert -1e3 < row["min"] <= row["max"] < 1e3, name  # no blow-up either
+    # fp16 on the CPU is the one clear error
+    assert [name for name, row in rows.items() if "error" in row] == [
+        "cells, default noise, fp16"
+    ]
+    assert "fp16 is not supported on the CPU" in rows["cells, default noise, fp16"]["error"]
+    zero = rows["zero frame"]
+    assert zero["tiles_run"] == 0 and zero["max"] == zero["min"] == 0.0  # nothing in, nothing out
+    assert rows["zero frame, every tile run"]["tiles_run"] > 0
+    fp32, bf16 = rows["cells, default noise, fp32"], rows["cells, default noise, bf16"]
+    # stated error: bf16 rounding (8 bits of mantissa) moves the mean by at most 5 %
+    assert bf16["mean"] == pytest.approx(fp32["mean"], rel=0.05, abs=1e-3)

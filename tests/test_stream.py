@@ -20,17 +20,17 @@ FRAMES = 20
 class ConvModel(torch.nn.Module):
     """Small random non-linear stand-in with the SV-CoDe signature; can fail on purpose."""
 
-    def __init__(self, fail_after: int | None = None):
+    def __init__(self, fail_after: int | None = None, failure: type = KeyboardInterrupt):
         super().__init__()
         torch.manual_seed(0)
         self.demix = torch.nn.Conv2d(9, 9, 3, padding=1)
         self.recon = torch.nn.Conv2d(9, 1, 3, padding=1)
-        self.fail_after = fail_after
+        self.fail_after, self.failure = fail_after, failure
         self.calls = 0
 
     def forward(self, views, origins, sub_view_size):
         if self.fail_after is not None and self.calls >= self.fail_after:
-            raise RuntimeError("simulated crash")
+            raise self.failure("simulated crash")
         self.calls += 1
         demixed = torch.sigmoid(self.demix(views))
         return demixed, torch.sigmoid(self.recon(demixed))
@@ -97,8 +97,8 @@ def test_single_frame_gives_one_image(tiny_system, stack, tmp_path):
 
 def test_interrupted_run_resumes_every_frame_exactly_once(tiny_system, stack, tmp_path):
     args = (tmp_path / "meas.tif", tmp_path / "out.tif")
-    crashing = _reconstructor(tiny_system, ConvModel(fail_after=7))
-    with pytest.raises(RuntimeError, match="simulated crash"):
+    crashing = _reconstructor(tiny_system, ConvModel(fail_after=7))  # Ctrl-C after 7 frames
+    with pytest.raises(KeyboardInterrupt, match="simulated crash"):
         reconstruct_file(*args, lambda: crashing, views_path=tmp_path / "views.tif", progress=False)
     assert not (tmp_path / "out.tif").exists()
     assert np.load(tmp_path / "out.tif.done.npy").sum() == 7
@@ -122,7 +122,7 @@ def test_interrupted_run_resumes_every_frame_exactly_once(tiny_system, stack, tm
 def test_changed_settings_start_afresh(tiny_system, stack, tmp_path):
     args = (tmp_path / "meas.tif", tmp_path / "out.tif")
     crashing = _reconstructor(tiny_system, ConvModel(fail_after=5))
-    with pytest.raises(RuntimeError):
+    with pytest.raises(KeyboardInterrupt):
         reconstruct_file(*args, lambda: crashing, settings={"tile": 16}, progress=False)
     model = ConvModel()
     summary = reconstruct_file(

@@ -8,8 +8,10 @@ the :class:`~svcode_core.config.SystemConfig` (from the description, or from a
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +19,7 @@ import numpy as np
 import tifffile
 
 from .config import SystemConfig
+from .outputs import temporary_sibling
 
 __all__ = ["read_tiff", "system_beside", "tiff_metadata", "write_json_atomic", "write_tiff"]
 
@@ -40,8 +43,10 @@ def write_tiff(
 ) -> Path:
     """Write ``array`` as a float32 TIFF that records ``system`` and what the data is.
 
-    The file is written to a temporary name and renamed, so a crash never leaves a
-    half-written file under ``path``.
+    The file is written to a unique temporary name beside ``path`` and renamed, so a crash
+    never leaves a half-written file under ``path``, and two writers of one path leave one
+    of the two files whole (the last rename wins), never a mixture. The temporary file is
+    removed if writing fails.
 
     Parameters
     ----------
@@ -71,9 +76,16 @@ def write_tiff(
     if extra:
         meta.update(extra)
     json.dumps(meta)  # fail here, before writing, on non-serialisable metadata
-    partial = path.with_name(path.name + ".partial")
     data = np.asarray(array, dtype=np.float32)
-    if is_ome_path(path):
+    with _renamed_into(path) as partial:
+        _write_tiff_data(partial, data, kind, meta, ome=is_ome_path(path))
+    return path
+
+
+def _write_tiff_data(
+    partial: Path, data: np.ndarray, kind: str, meta: dict[str, Any], ome: bool
+) -> None:
+    if ome:
         axes = {2: "YX", 3: "CYX" if kind in ("views", "demixed") else "TYX", 4: "TCYX"}
         if data.ndim not in axes:
             raise ValueError(f"an OME-TIFF takes 2 to 4 dimensions, got shape {data.shape}")
@@ -84,8 +96,18 @@ def write_tiff(
         )
     else:
         tifffile.imwrite(partial, data, photometric="minisblack", metadata={METADATA_KEY: meta})
-    os.replace(partial, path)
-    return path
+
+
+@contextlib.contextmanager
+def _renamed_into(path: Path) -> Iterator[Path]:
+    """A unique temporary path to write; renamed to ``path`` on success, removed on error."""
+    partial = temporary_sibling(path)
+    try:
+        yield partial
+        os.replace(partial, path)
+    except BaseException:
+        partial.unlink(missing_ok=True)
+        raise
 
 
 def system_beside(path: str | Path) -> SystemConfig | None:
@@ -140,7 +162,7 @@ def write_json_atomic(path: str | Path, data: Any) -> Path:
     """Write ``data`` as indented JSON through a temporary file and an atomic rename."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(path.name + ".partial")
-    partial.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
-    os.replace(partial, path)
+    text = json.dumps(data, indent=2) + "\n"
+    with _renamed_into(path) as partial:
+        partial.write_text(text, encoding="utf-8")
     return path

@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from .config import SystemConfig
+from .frames import as_frame_stack, finite_frame  # noqa: F401 (the baselines import them here)
 from .geometry import extract_sub_views, pad_sensor_frame
 from .noise import noise_floor
 from .tiling import (
@@ -79,33 +80,6 @@ def resolve_device(device: str | torch.device) -> torch.device:
     if resolved.type not in ("cpu", "cuda", "mps"):
         raise ValueError(f"device: {device!r} is not supported; use cpu, cuda or mps")
     return resolved
-
-
-def as_frame_stack(frames: Any) -> np.ndarray:
-    """A raw frame ``(H, W)`` or a stack ``(T, H, W)`` as a ``(T, H, W)`` array (a view
-    where possible); :class:`ValueError` for non-real values, other ranks, an empty stack."""
-    array = np.asarray(frames)
-    if array.dtype.kind not in "biuf":
-        raise ValueError(f"frames must hold real numbers, got dtype {array.dtype}")
-    if array.ndim not in (2, 3):
-        raise ValueError(
-            "expected a raw sensor frame (H×W) or a stack (T×H×W), "
-            f"got an array of shape {array.shape}"
-        )
-    stack = array[None] if array.ndim == 2 else array
-    if stack.shape[0] == 0:
-        raise ValueError("the frame stack is empty (0 frames)")
-    return stack
-
-
-def finite_frame(frame: Any, index: int, dtype: type = np.float32) -> np.ndarray:
-    """``frame`` as a ``dtype`` array; :class:`ValueError` naming frame ``index`` and the
-    count if it holds NaN or Inf."""
-    values = np.asarray(frame, dtype=dtype)
-    bad = values.size - int(np.isfinite(values).sum())
-    if bad:
-        raise ValueError(f"frame {index} holds {bad} NaN or Inf values")
-    return values
 
 
 def check_frame_shape(shape: tuple[int, ...], system: SystemConfig) -> None:

@@ -20,10 +20,19 @@ from .config import SystemConfig
 from .departures import Departures, load_departures
 from .geometry import extract_sub_views, pad_sensor_frame
 from .instrument import Instrument
-from .io import write_tiff
+from .io import write_json_atomic, write_tiff
 from .noise import SensorModel, apply_sensor_noise
+from .outputs import OutputLock
+from .scene_checks import check_system_geometry
 
-__all__ = ["Simulation", "Simulator"]
+__all__ = ["Simulation", "Simulator", "scene_files"]
+
+SCENE_FILES = ("measurement.tif", "views.tif", "demixed.tif", "object.tif", "system.json")
+
+
+def scene_files(out_dir: str | Path) -> dict[str, Path]:
+    """The files :meth:`Simulation.save` writes to ``out_dir``, by name."""
+    return {name: Path(out_dir) / name for name in SCENE_FILES}
 
 
 @dataclass
@@ -65,11 +74,14 @@ class Simulation:
         out_dir.mkdir(parents=True, exist_ok=True)
         if departures is not None:
             extra = {**(extra or {}), "departures": departures.to_dict()}
-        for name in ("measurement", "views", "demixed", "object"):
-            write_tiff(out_dir / f"{name}.tif", getattr(self, name), system, kind=name, extra=extra)
-        system.save(out_dir / "system.json")
-        if departures is not None:
-            departures.save(out_dir / "departures.json")
+        files = scene_files(out_dir)
+        with OutputLock(out_dir / "scene"):  # one writer at a time: no mixed scenes
+            for name in ("measurement", "views", "demixed", "object"):
+                write_tiff(files[f"{name}.tif"], getattr(self, name), system, kind=name,
+                           extra=extra)  # fmt: skip
+            write_json_atomic(files["system.json"], system.to_dict())
+            if departures is not None:
+                departures.save(out_dir / "departures.json")
         return out_dir
 
 
@@ -79,6 +91,8 @@ class Simulator:
     Parameters
     ----------
     system : SystemConfig
+        Refused if none of its chief rays lies on the sensor; warned about if some do not,
+        or if two coincide (:func:`~svcode_core.scene_checks.check_system_geometry`).
     operator : CM2Operator, optional
         Default: :meth:`CM2Operator.from_system` (pupil-model PSFs, ``system.rank``).
     device, dtype
@@ -106,6 +120,7 @@ class Simulator:
         _reuse: Instrument | None = None,
     ) -> None:
         self.system = system.validate()
+        check_system_geometry(self.system)
         if departures is not None:
             departures = load_departures(departures, self.system)
         self.departures = departures

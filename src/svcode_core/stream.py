@@ -14,11 +14,23 @@ Output and resume scheme
     mark is simply written again into the same slot: nothing is lost or duplicated. When
     every frame is done, the partial files are renamed to their final names and the
     bookkeeping files removed. A rerun with different settings starts afresh.
+
+Safety
+    Before anything is computed, the outputs are checked (none may be an input or another
+    output, a directory, or in a place where no file can be created), every frame is read
+    once and checked (:func:`~svcode_core.frames.finite_frame`: integer frames converted,
+    NaN/Inf and out-of-range frames refused) and, when reconstructing in this process, the
+    reconstructor is built. Each output is locked (``OUT.tif.lock``,
+    :class:`~svcode_core.outputs.OutputLock`) for the whole run, so a second run onto the
+    same file is refused instead of mixing its settings and pixels into the first's. A run
+    that fails with an error removes the partial and bookkeeping files it created; an
+    interrupted one (Ctrl-C, ``kill``) keeps them, to resume.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import sys
@@ -32,7 +44,9 @@ import tifffile
 from tqdm import tqdm
 
 from .config import N_LENSES, SystemConfig
+from .frames import finite_frame, require_frames
 from .io import METADATA_KEY, tiff_metadata, write_json_atomic
+from .outputs import OutputLock, check_outputs
 from .parallel import Factory, FrameResult, dask_client, dask_frames, local_frames
 from .reconstruct import check_frame_shape
 
@@ -61,9 +75,14 @@ class FrameReader:
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
+        if self.path.is_dir():
+            raise IsADirectoryError(errno.EISDIR, f"{self.path} is a directory, not a TIFF file")
         if not self.path.is_file():
             raise FileNotFoundError(f"no such file: {self.path}")
-        self._tif = tifffile.TiffFile(self.path)
+        try:
+            self._tif = tifffile.TiffFile(self.path)
+        except (tifffile.TiffFileError, ValueError) as err:
+            raise ValueError(f"{self.path}: not a readable TIFF ({err})") from None
         series = self._tif.series[0]
         self.shape = tuple(series.shape)
         if len(self.shape) not in (2, 3):
@@ -134,6 +153,38 @@ def _sibling(path: Path, suffix: str) -> Path:
     return path.with_name(path.name + suffix)
 
 
+class _CheckedFrames:
+    """The frames of a reader in normalised units, each checked as it is read."""
+
+    def __init__(self, reader: FrameReader, scale: float | None) -> None:
+        self.reader, self.scale = reader, scale
+
+    def __len__(self) -> int:
+        return len(self.reader)
+
+    def __getitem__(self, index: int) -> np.ndarray:
+        return finite_frame(self.reader[index], index, scale=self.scale)
+
+    def check_all(self) -> None:
+        """Read and check every frame once (:class:`ValueError` naming the first bad one)."""
+        for index in range(len(self)):
+            try:
+                self[index]
+            except ValueError as err:
+                raise ValueError(f"{self.reader.path.name}: {err}") from None
+
+
+def _written_files(out: Path, views: Path | None) -> dict[str, Path | None]:
+    """Every file a run onto ``out`` (and ``views``) writes, by label."""
+    files: dict[str, Path | None] = {"output": out, "views output": views}
+    for suffix in (".partial", ".done.npy", ".resume.json", ".lock"):
+        files[f"output's {suffix} file"] = _sibling(out, suffix)
+    if views is not None:
+        files["views' .partial file"] = _sibling(views, ".partial")
+        files["views' .lock file"] = _sibling(views, ".lock")
+    return files
+
+
 class _ResumableOutput:
     """The partial output TIFF(s), the done flags and the resume state of one run."""
 
@@ -161,7 +212,11 @@ class _ResumableOutput:
         self.arrays: dict[str, np.ndarray] = {}
         self.resumed = self._reopen()
         if not self.resumed:
-            self._create()
+            try:
+                self._create()
+            except BaseException:
+                self.discard()
+                raise
 
     def _partial(self, kind: str) -> Path:
         return _sibling(self.targets[kind], ".partial")
@@ -223,6 +278,14 @@ class _ResumableOutput:
         self.done[index] = 1
         self.done.flush()
 
+    def discard(self) -> None:
+        """Remove the partial files and the bookkeeping (after a failed run)."""
+        self.arrays.clear()
+        with contextlib.suppress(AttributeError):
+            del self.done
+        for path in (*map(self._partial, self._kinds()), self.done_path, self.state_path):
+            path.unlink(missing_ok=True)
+
     def finish(self) -> None:
         """Rename the complete partial files to their final names; remove the bookkeeping."""
         if not self.done.all():
@@ -261,6 +324,8 @@ def reconstruct_file(
     workers: int = 0,
     scheduler: str | None = None,
     progress: bool = True,
+    input_scale: float | None = None,
+    inputs: dict[str, Path | None] | None = None,
 ) -> StreamSummary:
     """Reconstruct a TIFF frame or stack into ``out_path``, resuming an interrupted run.
 
@@ -286,14 +351,31 @@ def reconstruct_file(
         Address of an existing dask scheduler (takes precedence over ``workers``).
     progress : bool
         Show a progress bar on stderr.
+    input_scale : float, optional
+        Divide every frame by this full-scale value (see :mod:`svcode_core.frames` for the
+        default rule of integer frames); recorded in the settings.
+    inputs : dict, optional
+        Further files the run reads (label → path, e.g. the weights), which no output may
+        overwrite.
 
     Returns
     -------
     StreamSummary
+
+    Raises
+    ------
+    ValueError
+        Before any work: no system, wrong frame size, no frames, a bad frame, an output
+        that is an input or another output.
+    OSError
+        Before any work: an output that is a directory or cannot be written;
+        :class:`~svcode_core.outputs.OutputBusyError` when another run writes an output.
     """
     out_path = Path(out_path)
     views = Path(views_path) if views_path is not None else None
     settings = dict(settings or {})
+    if input_scale is not None:
+        settings["input_scale"] = input_scale
     with FrameReader(input_path) as reader:
         system = system or reader.system
         if system is None:
@@ -302,41 +384,73 @@ def reconstruct_file(
                 "(system.json); pass one (--system FILE or a preset name)"
             )
         check_frame_shape(reader.shape[-2:], system)
-        output = _ResumableOutput(
-            out_path,
-            views,
-            len(reader),
-            reader.is_stack,
-            system,
-            settings,
-            _fingerprint(reader, system, settings, views is not None),
-        )
-        todo = output.pending()
-        summary = StreamSummary(frames=len(reader), computed=0)
-        bar = tqdm(
-            total=len(reader),
-            initial=len(reader) - len(todo),
-            unit="frame",
-            file=sys.stderr,
-            disable=not progress,
-            desc="reconstruct",
-        )
-        backend = _frame_results(factory, reader, todo, views is not None, workers, scheduler)
-        with bar, backend as results:
-            for index, recon, demixed, counters in results:
-                output.write(index, recon, demixed)
-                summary.computed += 1
-                summary.tiles_run += counters["tiles_run"]
-                summary.tiles_skipped += counters["tiles_skipped"]
-                bar.update()
-        output.finish()
+        require_frames(len(reader), reader.path.name)
+        beside = reader.path.with_name("system.json")
+        read = {"input": reader.path, "the system.json beside the input":
+                beside if beside.is_file() else None, **(inputs or {})}  # fmt: skip
+        check_outputs(_written_files(out_path, views), read)
+        frames = _CheckedFrames(reader, input_scale)
+        frames.check_all()
+        with contextlib.ExitStack() as locks:
+            for target in (out_path, views):
+                if target is not None:
+                    locks.enter_context(OutputLock(target))
+            local = None if scheduler or workers > 0 else factory()
+            output = _ResumableOutput(
+                out_path,
+                views,
+                len(reader),
+                reader.is_stack,
+                system,
+                settings,
+                _fingerprint(reader, system, settings, views is not None),
+            )
+            try:
+                summary = _run(output, frames, factory if local is None else (lambda: local),
+                               workers, scheduler, progress)  # fmt: skip
+                output.finish()
+            except Exception:
+                if not output.resumed:
+                    output.discard()
+                raise
+    return summary
+
+
+def _run(
+    output: _ResumableOutput,
+    frames: _CheckedFrames,
+    factory: Factory,
+    workers: int,
+    scheduler: str | None,
+    progress: bool,
+) -> StreamSummary:
+    """Reconstruct the frames ``output`` is missing and write them into it."""
+    todo = output.pending()
+    summary = StreamSummary(frames=len(frames), computed=0)
+    bar = tqdm(
+        total=len(frames),
+        initial=len(frames) - len(todo),
+        unit="frame",
+        file=sys.stderr,
+        disable=not progress,
+        desc="reconstruct",
+    )
+    views = "views" in output.arrays
+    backend = _frame_results(factory, frames, todo, views, workers, scheduler)
+    with bar, backend as results:
+        for index, recon, demixed, counters in results:
+            output.write(index, recon, demixed)
+            summary.computed += 1
+            summary.tiles_run += counters["tiles_run"]
+            summary.tiles_skipped += counters["tiles_skipped"]
+            bar.update()
     return summary
 
 
 @contextlib.contextmanager
 def _frame_results(
     factory: Factory,
-    reader: FrameReader,
+    frames: _CheckedFrames,
     todo: list[int],
     views: bool,
     workers: int,
@@ -347,6 +461,6 @@ def _frame_results(
         yield iter(())
     elif scheduler or workers > 0:
         with dask_client(workers, scheduler) as client:
-            yield dask_frames(factory, reader, todo, views, client)
+            yield dask_frames(factory, frames, todo, views, client)
     else:
-        yield local_frames(factory, reader, todo, views)
+        yield local_frames(factory, frames, todo, views)

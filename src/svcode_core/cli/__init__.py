@@ -2,6 +2,11 @@
 
 Each sub-command module exposes ``add_parser(subparsers)`` (registers its arguments and
 sets ``func``) and is listed in :data:`COMMANDS`.
+
+Exit status: 0 on success; 2 for a user error (bad option or input, a file that is
+missing, unreadable or unwritable, an unavailable device), reported in one line on stderr
+(``--debug`` shows the traceback instead); 130 when interrupted (Ctrl-C); 1 with a
+traceback for anything else (a bug: please report it).
 """
 
 from __future__ import annotations
@@ -9,6 +14,8 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 from ..config import SystemConfig, available_presets, load_system
@@ -40,17 +47,62 @@ def build_parser() -> argparse.ArgumentParser:
         prog="svcode",
         description="SV-CoDe for computational miniature mesoscopes (CM²).",
     )
+    debug_help = "show the full traceback of an error instead of a one-line message"
+    parser.add_argument("--debug", action="store_true", help=debug_help)
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in COMMANDS:
         importlib.import_module(f"{__name__}.{name}").add_parser(subparsers)
+    for command in subparsers.choices.values():  # also accepted after the command
+        command.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                             help=debug_help)  # fmt: skip
     return parser
 
 
+def describe_error(err: BaseException) -> str:
+    """A one-line description of a user error (an ``OSError`` without its errno prefix)."""
+    if isinstance(err, OSError) and err.strerror:
+        if err.filename is not None:
+            return f"{err.filename}: {err.strerror}"
+        return err.strerror
+    return " ".join(str(err).split()) or type(err).__name__
+
+
+def _one_line_warnings(command: str) -> Callable[..., None]:
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        print(f"svcode {command}: warning: {message}", file=file or sys.stderr)
+
+    return show
+
+
+def _check_device(args: argparse.Namespace) -> None:
+    """Refuse an unavailable ``--device`` before any work (every command that has one)."""
+    device = getattr(args, "device", None)
+    if isinstance(device, str):
+        from ..reconstruct import resolve_device
+
+        resolve_device(device)
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``svcode`` console script; returns the exit status."""
+    """Entry point of the ``svcode`` console script; returns the exit status.
+
+    User errors (:class:`ValueError`, :class:`OSError`) become one line on stderr and exit
+    status 2, an interruption exits with 130; with ``--debug`` both raise.
+    """
     args = build_parser().parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError) as err:
-        print(f"svcode {args.command}: error: {err}", file=sys.stderr)
-        return 2
+    debug = getattr(args, "debug", False)
+    with warnings.catch_warnings():
+        warnings.showwarning = _one_line_warnings(args.command)
+        try:
+            _check_device(args)
+            return int(args.func(args) or 0)
+        except (ValueError, OSError) as err:
+            if debug:
+                raise
+            print(f"svcode {args.command}: error: {describe_error(err)}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            if debug:
+                raise
+            print(f"svcode {args.command}: interrupted", file=sys.stderr)
+            return 130

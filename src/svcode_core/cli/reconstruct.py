@@ -56,6 +56,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or mps")
     parser.add_argument(
+        "--input-scale", type=float, metavar="COUNTS",
+        help="divide every frame by COUNTS, the sensor's full-scale value (e.g. 4095 for a "
+        "12-bit sensor); default: 8- and 16-bit integer frames are divided by their type's "
+        "maximum (255, 65535), float frames are taken as normalised (full scale 1.0)",
+    )
+    parser.add_argument(
         "--precision",
         default="fp32",
         choices=sorted({*PRECISIONS, "fp64"}),
@@ -128,6 +134,9 @@ def _spec(args: argparse.Namespace, system) -> ReconstructorSpec | BaselineSpec 
     if args.method in LEARNED:
         return _learned_spec(args, system)
     if args.method != "svcode":
+        if args.tile is not None or args.stride is not None:
+            raise ValueError(f"--tile and --stride apply to --method svcode, not to "
+                             f"--method {args.method} (it does not tile)")  # fmt: skip
         return BaselineSpec(args.method, system, {
             "device": args.device, "precision": args.precision, **baseline_options(args)
         })
@@ -148,10 +157,23 @@ def _spec(args: argparse.Namespace, system) -> ReconstructorSpec | BaselineSpec 
     return ReconstructorSpec(str(weights), system, options)
 
 
+def _read_files(args: argparse.Namespace, spec) -> dict[str, Path | None]:
+    """The files besides the input that the run reads (no output may overwrite them)."""
+    files: dict[str, Path | None] = {"--weights": None, "--system": None}
+    weights = getattr(spec, "weights", None)
+    if weights is not None:
+        files["--weights"] = Path(weights)
+    if args.system and Path(args.system).is_file():
+        files["--system"] = Path(args.system)
+    return files
+
+
 def run(args: argparse.Namespace) -> int:
     """Reconstruct ``args.input`` into ``args.out``; print a one-line summary."""
     if args.workers < 0:
         raise ValueError(f"--workers must be >= 0, got {args.workers}")
+    if args.input_scale is not None and not 0 < args.input_scale < float("inf"):
+        raise ValueError(f"--input-scale must be a finite number > 0, got {args.input_scale}")
     system = _system(args)
     spec = _spec(args, system)
     start = time.perf_counter()
@@ -165,6 +187,8 @@ def run(args: argparse.Namespace) -> int:
         workers=args.workers,
         scheduler=args.scheduler,
         progress=not args.quiet,
+        input_scale=args.input_scale,
+        inputs=_read_files(args, spec),
     )
     seconds = time.perf_counter() - start
     resumed = summary.frames - summary.computed

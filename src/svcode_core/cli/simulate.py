@@ -7,8 +7,10 @@ import time
 from pathlib import Path
 
 from ..departures import NAMED_SETS, load_departures
+from ..outputs import check_outputs
 from ..phantoms import KINDS, from_image, make_object
-from ..simulate import Simulator
+from ..scene_checks import check_object
+from ..simulate import Simulator, scene_files
 from . import add_system_arguments, chosen_system
 
 
@@ -39,12 +41,18 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Simulate and write the files; print a one-line summary."""
+    if args.frames < 1:
+        raise ValueError(f"--frames must be >= 1, got {args.frames}")
     system = chosen_system(args)
     size = system.sub_view_size
-    if args.object in KINDS:
+    image = Path(args.object) if args.object not in KINDS else None
+    outputs = [("--out", path) for path in scene_files(args.out).values()]
+    check_outputs(outputs, {"--object": image, "--system": args.system})
+    if image is None:
         obj = make_object(args.object, size, args.seed)
-    elif Path(args.object).is_file():
-        obj = from_image(args.object, size)
+    elif image.is_file():
+        obj = from_image(image, size)
+        check_object(obj, str(image))
     else:
         raise ValueError(
             f"--object {args.object!r} is neither a phantom kind ({', '.join(KINDS)}) "
