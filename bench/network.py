@@ -49,10 +49,11 @@ from svcode_core.network import ModelConfig, SVCoDe
 RESULTS = Path(__file__).parent / "results"
 SCALES = {
     "cm2-mini": {"config": "mini", "tile": 96, "batch": 4, "sub_view": 384, "stride": 48},
+    "training": {"config": "mini", "tile": 96, "batch": 8, "sub_view": 384, "stride": 48},
     "paper": {"config": "reference", "tile": 480, "batch": 1, "sub_view": 2400, "stride": 240},
 }
 VARIANTS = ("plain", "lattice", "uncached", "cached", "cached-full")
-SCALE_VARIANTS = {"cm2-mini": VARIANTS[:4], "paper": VARIANTS}
+SCALE_VARIANTS = {"cm2-mini": VARIANTS[:4], "training": VARIANTS[:3], "paper": VARIANTS}
 DEFAULT_BUDGET = 2**30
 
 
@@ -94,6 +95,8 @@ def measure(scale: str, variant: str, iters: int, threads: int) -> dict:
     model = SVCoDe(config).eval()
     tile, batch = spec["tile"], spec["batch"]
     views = torch.rand(batch, 9, tile, tile)
+    if scale == "training":
+        return _training_step(model, views, iters, spec, variant, threads)
     origins = [[(i // 2) * spec["stride"], (i % 2) * spec["stride"]] for i in range(batch)]
     sub_view = tile if variant == "cached-full" else spec["sub_view"]
     if variant.startswith("cached"):
@@ -128,6 +131,35 @@ def measure(scale: str, variant: str, iters: int, threads: int) -> dict:
         "batch": batch,
         "threads": threads,
     }
+
+
+def _training_step(
+    model: SVCoDe, views: torch.Tensor, iters: int, spec: dict, variant: str, threads: int
+) -> dict:
+    """One training step (forward, loss, backward, Adam) on a batch of patches that share
+    their origin, as the trainer draws them (``--same-origin`` = batch size)."""
+    model.train()
+    optimizer = torch.optim.Adam(model.parameters(), 1e-4)
+    origins = [[spec["stride"], 2 * spec["stride"]]] * len(views)
+    times, cpu_times = [], []
+    for call in range(iters + 1):
+        start, cpu = time.perf_counter(), time.process_time()
+        demixed, recon = model(views, origins, spec["sub_view"])
+        optimizer.zero_grad()
+        (demixed.square().mean() + recon.square().mean()).backward()
+        optimizer.step()
+        if call:  # the first call is the warm-up
+            times.append(time.perf_counter() - start)
+            cpu_times.append(time.process_time() - cpu)
+    return {
+        "scale": "training", "variant": variant,
+        "parameters": sum(p.numel() for p in model.parameters()),
+        "mlp_parameters": sum(p.numel() for n, p in model.named_parameters() if ".mlp." in n),
+        "latency_s": statistics.median(times), "cpu_s": statistics.median(cpu_times),
+        "gflop": 0.0, "gflop_per_s": 0.0, "peak_mib": 0.0, "cache_mib": 0.0, "field_mib": 0.0,
+        "sub_view": spec["sub_view"], "tile": spec["tile"], "batch": len(views),
+        "threads": threads,
+    }  # fmt: skip
 
 
 def main() -> None:
