@@ -88,6 +88,7 @@ class CM2Operator:
         tolerance: float | None = None,
         dtype: torch.dtype = torch.float32,
         device: torch.device | str | None = None,
+        memory_budget: int | None = None,
     ) -> CM2Operator:
         """Decompose each lens's PSF grid and build the operator.
 
@@ -103,6 +104,10 @@ class CM2Operator:
             Largest fraction of PSF energy left out.
         dtype, device
             Of the operator.
+        memory_budget : int, optional
+            Bytes for the lens blur's kept spectra and working memory
+            (:class:`~svcode_core.lowrank.LowRankSVOperator`; default
+            :data:`~svcode_core.lowrank.DEFAULT_MEMORY_BUDGET`).
         """
         psfs = np.asarray(psfs)
         if psfs.ndim != 4 or psfs.shape[0] != N_LENSES:
@@ -112,7 +117,8 @@ class CM2Operator:
         decompositions = [decompose_psfs(lens_psfs, rank, tolerance) for lens_psfs in psfs]
         margin = max(psfs.shape[-2:]) // 2
         lenses = LowRankSVOperator.from_decomposition(
-            decompositions, system.sub_view_size, margin=margin, dtype=dtype, device=device
+            decompositions, system.sub_view_size, margin=margin, dtype=dtype, device=device,
+            memory_budget=memory_budget,
         )
         return cls(system, lenses, margin, decompositions)
 
@@ -124,11 +130,14 @@ class CM2Operator:
         tolerance: float | None = None,
         dtype: torch.dtype = torch.float32,
         device: torch.device | str | None = None,
+        memory_budget: int | None = None,
     ) -> CM2Operator:
         """The operator of ``system`` with PSFs from its pupil model (:mod:`.optics`)."""
         from .optics import system_psfs
 
-        return cls.from_psfs(system, system_psfs(system), rank, tolerance, dtype, device)
+        return cls.from_psfs(
+            system, system_psfs(system), rank, tolerance, dtype, device, memory_budget
+        )
 
     # --------------------------------------------------------------- reports
     @property
