@@ -14,6 +14,7 @@ from svcode_core.lowrank import (
     coefficient_maps,
     decompose_psfs,
     interpolation_basis,
+    plan_chunks,
 )
 
 TOLERANCE = {torch.float32: 1e-5, torch.float64: 1e-12}
@@ -136,21 +137,23 @@ def test_factored_maps_equal_stored_maps():
 
 @pytest.mark.parametrize("batch", [1, 3])
 def test_budget_sets_the_chunks(batch):
-    op = factored_operator(torch.float32)
-    per_lens, per_term = op._costs(batch)
-    kept = op._spectra.nelement() * op._spectra.element_size()
-    cases = {  # budget → (lenses, components) per chunk
-        kept + per_lens + 3 * per_term: (1, 3),  # part of one lens: 7 = 3 + 3 + 1
-        kept + 2 * (per_lens + 7 * per_term): (2, 7),  # two whole lenses: 5 = 2 + 2 + 1
-        1 << 40: (5, 7),
-    }
-    factors = sum(t.nelement() * t.element_size() for t in (op.kernels, *op._maps.factors))
-    for budget, chunks in cases.items():
-        op.memory_budget = budget
-        assert op.chunking(batch) == chunks
-        assert op.memory_estimate(batch) <= budget + factors
-    op.memory_budget = 1  # below one term: still computes, one term at a time
-    assert op.chunking(batch) == (1, 1)
+    shape, kernel_shape, dtype = (19, 22), (5, 7), torch.float32
+    per_lens, per_term = factored_operator(dtype)._costs(batch)
+    smallest = per_lens + per_term  # one lens, one component
+    seen = []
+    for budget in np.geomspace(smallest, 200 * smallest, 40).astype(int):
+        plan = plan_chunks(shape, kernel_shape, 5, 7, dtype, int(budget), batch)
+        assert plan.bytes <= budget or (plan.lenses, plan.components) == (1, 1)
+        assert plan.components == 7 or plan.lenses == 1
+        op = factored_operator(dtype, budget=int(budget))
+        assert op._spectra.shape[0] == plan.kept_lenses
+        assert op.chunking(batch) == (plan.lenses, plan.components)
+        factors = sum(t.nelement() * t.element_size() for t in (op.kernels, *op._maps.factors))
+        assert op.memory_estimate(batch) == plan.bytes + factors
+        seen.append((plan.lenses, plan.components))
+    assert seen[-1] == (5, 7) and any(7 % k for _, k in seen) and any(5 % n for n, _ in seen)
+    tiny = plan_chunks(shape, kernel_shape, 5, 7, dtype, 1, batch)  # below one term:
+    assert (tiny.kept_lenses, tiny.lenses, tiny.components) == (0, 1, 1)  # one at a time
     with pytest.raises(ValueError, match="memory_budget"):
         factored_operator(budget=0)
 

@@ -42,11 +42,14 @@ from .geometry import normalized_coordinates
 __all__ = [
     "DEFAULT_MEMORY_BUDGET",
     "InterpolatedMaps",
+    "ChunkPlan",
     "LowRankSVOperator",
     "PSFDecomposition",
     "coefficient_maps",
     "decompose_psfs",
+    "fft_shape",
     "interpolation_basis",
+    "plan_chunks",
 ]
 
 _REAL_DTYPES = (torch.float32, torch.float64)
@@ -294,6 +297,94 @@ class InterpolatedMaps:
         return self.grid_weights, self.basis_rows, self.basis_cols
 
 
+def fft_shape(shape: tuple[int, int], kernel_shape: tuple[int, int]) -> tuple[int, int]:
+    """FFT grid of the operator: at least ``(H + h//2, W + w//2)`` and the kernel, 5-smooth."""
+    return tuple(
+        next_fast_len(max(size + kernel // 2, kernel), real=True)
+        for size, kernel in zip(shape, kernel_shape, strict=True)
+    )
+
+
+@dataclass(frozen=True)
+class ChunkPlan:
+    """How one application of a :class:`LowRankSVOperator` fits its memory budget.
+
+    Attributes
+    ----------
+    kept_lenses : int
+        Lenses whose kernel spectra are kept (the first ones; as many as fit in half the
+        budget, leaving room for one term of one image); the others' are recomputed
+        chunk by chunk.
+    lenses, components : int
+        Lenses and components per chunk: all components of as many lenses as fit, else one
+        lens and as many components as fit; at least one of each.
+    bytes : int
+        Kept spectra plus the working memory of one chunk; exceeds the budget only when
+        the kept spectra and one term (of the whole batch) do.
+    """
+
+    kept_lenses: int
+    lenses: int
+    components: int
+    bytes: int
+
+
+def _application_costs(
+    shape: tuple[int, int], fft: tuple[int, int], itemsize: int, batch: int
+) -> tuple[int, int, int]:
+    """Bytes of one half spectrum, and working bytes per lens and per (lens, component) term.
+
+    Per lens: the accumulated (forward) or input (adjoint) spectra and an inverse or forward
+    FFT with its padded copy. Per term: its coefficient map, the weighted or correlated
+    images with their padded FFT copies and spectra, and the kernel spectrum (counted even
+    when kept: the adjoint forms its conjugate product).
+    """
+    plane = shape[0] * shape[1] * itemsize
+    padded = fft[0] * fft[1] * itemsize
+    spectrum = fft[0] * (fft[1] // 2 + 1) * 2 * itemsize
+    per_lens = batch * (2 * spectrum + padded + plane)
+    per_term = plane + batch * (plane + padded + 2 * spectrum) + 2 * spectrum
+    return spectrum, per_lens, per_term
+
+
+def plan_chunks(
+    shape: tuple[int, int],
+    kernel_shape: tuple[int, int],
+    n_lenses: int,
+    rank: int,
+    dtype: torch.dtype = torch.float32,
+    memory_budget: int | None = None,
+    batch: int = 1,
+) -> ChunkPlan:
+    """The chunks of an operator of these sizes applied to ``batch`` images (no allocation).
+
+    Parameters
+    ----------
+    shape, kernel_shape
+        Image ``(H, W)`` and kernel ``(h, w)`` sizes.
+    n_lenses, rank
+        ``L`` and ``K``.
+    dtype
+        Real dtype of the operator.
+    memory_budget : int, optional
+        Bytes; default :data:`DEFAULT_MEMORY_BUDGET`.
+    batch : int
+        Number of images per application.
+    """
+    budget = DEFAULT_MEMORY_BUDGET if memory_budget is None else int(memory_budget)
+    itemsize = torch.finfo(dtype).bits // 8
+    fft = fft_shape(shape, kernel_shape)
+    spectrum, per_lens, per_term = _application_costs(shape, fft, itemsize, batch)
+    _, lens_one, term_one = _application_costs(shape, fft, itemsize, 1)
+    room = max(0, min(budget // 2, budget - lens_one - term_one))
+    kept = min(room // (rank * spectrum), n_lenses)
+    available = budget - kept * rank * spectrum
+    components = int(np.clip((available - per_lens) // per_term, 1, rank))
+    lenses = int(np.clip(available // (per_lens + components * per_term), 1, n_lenses))
+    work = lenses * (per_lens + components * per_term)
+    return ChunkPlan(kept, lenses, components, kept * rank * spectrum + work)
+
+
 def _check_image(tensor: torch.Tensor, name: str, trailing: tuple[int, ...]) -> None:
     if not isinstance(tensor, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(tensor).__name__}")
@@ -425,19 +516,15 @@ class LowRankSVOperator:
         self._maps = maps if isinstance(maps, InterpolatedMaps) or self.lens_batched else maps[None]
         self._shape = lead_shape[-2:]
         self.memory_budget = int(memory_budget)
-        rows, cols = self.shape
-        self.fft_shape = (
-            next_fast_len(max(rows + height // 2, height), real=True),
-            next_fast_len(max(cols + width // 2, width), real=True),
-        )
-        kept = min(self.memory_budget // 2 // (self.rank * self._spectrum_bytes), self.n_lenses)
+        self.fft_shape = fft_shape(self.shape, self.kernel_shape)
+        kept = self._plan(1).kept_lenses
         self._spectra = self._kernel_spectra(slice(0, kept), slice(None))
 
     # ------------------------------------------------------------------ pieces
     @property
     def _spectrum_bytes(self) -> int:
         """Bytes of one complex half spectrum on the FFT grid."""
-        return self.fft_shape[0] * (self.fft_shape[1] // 2 + 1) * 2 * self.dtype.itemsize
+        return _application_costs(self.shape, self.fft_shape, self.dtype.itemsize, 1)[0]
 
     def _kernel_spectra(self, lenses: slice, components: slice) -> torch.Tensor:
         """Real FFTs of some kernels, centre moved to index (0, 0), ``(l, k, Hf, Wf//2+1)``.
@@ -532,32 +619,21 @@ class LowRankSVOperator:
         return self.kernels.device
 
     # --------------------------------------------------------------- memory
-    def _costs(self, batch: int) -> tuple[int, int]:
-        """Working bytes per lens and per (lens, component) term of one application.
+    def _plan(self, batch: int) -> ChunkPlan:
+        return plan_chunks(
+            self.shape, self.kernel_shape, self.n_lenses, self.rank, self.dtype,
+            self.memory_budget, batch,
+        )
 
-        Per lens: the accumulated (forward) or input (adjoint) spectra and an inverse or
-        forward FFT with its padded copy. Per term: its coefficient map, the weighted or
-        correlated images with their padded FFT copies and spectra, and the kernel
-        spectrum (counted even when kept: the adjoint forms its conjugate product).
-        """
-        plane = self.shape[0] * self.shape[1] * self.dtype.itemsize
-        padded = self.fft_shape[0] * self.fft_shape[1] * self.dtype.itemsize
-        spectrum = self._spectrum_bytes
-        per_lens = batch * (2 * spectrum + padded + plane)
-        per_term = plane + batch * (plane + padded + 2 * spectrum) + 2 * spectrum
-        return per_lens, per_term
+    def _costs(self, batch: int) -> tuple[int, int]:
+        """Working bytes per lens and per (lens, component) term (:func:`plan_chunks`)."""
+        itemsize = self.dtype.itemsize
+        return _application_costs(self.shape, self.fft_shape, itemsize, batch)[1:]
 
     def chunking(self, batch: int = 1) -> tuple[int, int]:
-        """Lenses and components per chunk for ``batch`` images, within the budget.
-
-        All components of as many lenses as fit; else one lens and as many components as
-        fit; at least one of each.
-        """
-        per_lens, per_term = self._costs(batch)
-        available = self.memory_budget - self._spectra.nelement() * self._spectra.element_size()
-        components = int(np.clip((available - per_lens) // per_term, 1, self.rank))
-        lenses = int(np.clip(available // (per_lens + components * per_term), 1, self.n_lenses))
-        return lenses, components
+        """Lenses and components per chunk for ``batch`` images (:class:`ChunkPlan`)."""
+        plan = self._plan(batch)
+        return plan.lenses, plan.components
 
     def memory_estimate(self, batch: int = 1) -> int:
         """Bytes the operator holds plus its working peak for ``batch`` images (an estimate).
@@ -565,11 +641,9 @@ class LowRankSVOperator:
         Kept spectra, kernels and weights, plus the working memory of the chunks of
         :meth:`chunking`; the input and output images are not counted.
         """
-        lenses, components = self.chunking(batch)
-        per_lens, per_term = self._costs(batch)
         maps = self._maps.factors if isinstance(self._maps, InterpolatedMaps) else (self._maps,)
-        held = sum(t.nelement() * t.element_size() for t in (self.kernels, self._spectra, *maps))
-        return held + lenses * (per_lens + components * per_term)
+        held = sum(t.nelement() * t.element_size() for t in (self.kernels, *maps))
+        return held + self._plan(batch).bytes
 
     # ------------------------------------------------------------------ algebra
     def to(
