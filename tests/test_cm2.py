@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from svcode_core.cm2 import CM2Operator
+from svcode_core.cm2 import CM2Operator, simulation_cost
 from svcode_core.geometry import extract_sub_views, sub_view_origins
 
 
@@ -144,3 +144,12 @@ def test_memory_budget_chunks_lenses_and_components_unevenly(tiny_system, dtype,
         for result, expected in ((ax, whole.forward(x)), (aty, whole.adjoint(y))):
             assert (result - expected).norm() <= tol * expected.norm()
         assert abs((ax * y).sum() - (x * aty).sum()) <= tol * abs((ax * y).sum())
+
+
+def test_simulation_cost_names_the_rank_and_grows_with_the_field(tiny_system):
+    small = simulation_cost(tiny_system)
+    assert small.rank == CM2Operator.from_system(tiny_system).rank_report().ranks[0]
+    assert simulation_cost(tiny_system.replace(rank=3)).rank == 3
+    assert small.memory > 0 and small.seconds > 0
+    double = tiny_system.replace(sub_view_size=2 * tiny_system.sub_view_size)
+    assert simulation_cost(double).memory > small.memory

@@ -6,6 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
+from ..cm2 import CM2Operator
 from ..phantoms import KINDS, from_image, make_object
 from ..simulate import Simulator
 from . import add_system_arguments, chosen_system
@@ -29,6 +30,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--no-noise", action="store_true", help="write the noiseless frame")
     parser.add_argument("--frames", type=int, default=1,
                         help="number of frames T (independent noise draws); T > 1 writes T×H×W")
+    parser.add_argument("--memory-budget", type=float, metavar="GIB",
+                        help="memory of the forward model's kept spectra and working chunks "
+                             "(default 1 GiB)")
     parser.set_defaults(func=run)
 
 
@@ -46,7 +50,8 @@ def run(args: argparse.Namespace) -> int:
             "nor an existing image file"
         )
     start = time.perf_counter()
-    simulator = Simulator(system)
+    budget = None if args.memory_budget is None else int(args.memory_budget * 2**30)
+    simulator = Simulator(system, CM2Operator.from_system(system, memory_budget=budget))
     built = time.perf_counter()
     scene = simulator.simulate(obj, seed=args.seed, noise=not args.no_noise,
                                frames=args.frames, progress=args.frames > 1)
