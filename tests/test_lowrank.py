@@ -127,6 +127,10 @@ def test_factored_maps_equal_stored_maps():
     np.testing.assert_allclose(op.weights[2].numpy(), maps, rtol=0, atol=1e-14)
     x = torch.rand(19, 22, dtype=torch.float64)
     torch.testing.assert_close(op.forward(x), dense.forward(x), rtol=0, atol=1e-13)
+    single = op.to(dtype=torch.float32)
+    assert isinstance(single._maps, InterpolatedMaps) and single.memory_budget == op.memory_budget
+    error = (single.forward(x.float()).double() - op.forward(x)).norm() / op.forward(x).norm()
+    assert error <= TOLERANCE[torch.float32]
     mix = torch.rand(5, 7, dtype=torch.float64)
     window = (slice(3, 9), slice(2, 20))
     for operator in (op, dense):
