@@ -249,10 +249,12 @@ def simulation_cost(
 
     Computes and decomposes the PSFs of one lens (for their time, times nine, and for ``K``
     when ``system.rank`` is unset: that of corner lens 0, the largest in the presets) and
-    times one FFT of the lens grid; the memory is the sum of the largest arrays alive
-    together: the PSFs (float64, with the SVD's copies), the kept kernel spectra and the
-    working chunk of the lens blur (:func:`~.lowrank.plan_chunks`), and the frame's images
-    (lens blur, targets, padded frames, noise, the returned arrays).
+    times one FFT of the lens grid; the memory is the sum of the largest arrays: the PSFs
+    (float64, with the SVD's copies), the kept kernel spectra and the working chunk of the
+    lens blur (:func:`~.lowrank.plan_chunks`), and the frame's images (lens blur, targets,
+    padded frames, noise, the returned arrays). Not all are alive together, so it is an
+    upper estimate (at ``cm2-v2``: 2.8 GiB, while the whole ``svcode simulate`` process
+    peaks at 1.7 GiB resident).
 
     Parameters
     ----------
