@@ -15,8 +15,14 @@ automatically from ``system.rank_tolerance`` ("auto", per lens), it measures
   low-rank operator's (one lens, float64, one call after a warm-up);
 * milliseconds per full CM² frame: :meth:`CM2Operator.measure`, all nine lenses, float32,
   and per lens image of the centre lens (float32, the unit cost of a frame); median and
-  minimum of several calls after a warm-up. Each operator is built and run under an
-  address-space limit; an order whose operator does not fit is reported as skipped;
+  minimum of several calls after a warm-up. Each frame operator is built and run in a
+  fresh process under an address-space limit, with the default memory budget of the
+  operator (:data:`~svcode_core.lowrank.DEFAULT_MEMORY_BUDGET`); its peak memory (the
+  rise of the peak resident set over the process before building, and the peak resident
+  set of the whole process) is reported beside the time;
+* memory and time of a frame against the field size at a fixed K: ``cm2-mini`` at S, 2S
+  and 4S (:func:`svcode_core.footprint.doubled_system`: sensor lengths doubled, optics
+  unchanged), with the default budget and with a small one;
 * for ``cm2-mini``, the time to simulate a frame including noise with
   :meth:`svcode_core.simulate.Simulator.simulate` (which also computes the nine noiseless
   demixing targets, a second pass through the lens blur);
@@ -34,7 +40,8 @@ Torch, numba and BLAS use 2 threads. PSFs come from :func:`svcode_core.optics.sy
 Results go to ``bench/results/forward.json`` and ``forward.md``.
 
 Run: ``python bench/forward.py [--quick] [--presets cm2-mini cm2-v2] [--memory-gib 10]``
-(``--quick``: cm2-mini only, K in 1, 4, auto, exact reference on two lenses, < 1 min).
+(``--quick``: cm2-mini only, K in 1, 4, auto, exact reference on two lenses, field sizes S
+and 2S, about a minute).
 """
 
 from __future__ import annotations
@@ -56,13 +63,17 @@ os.environ.update(
 
 import argparse
 import contextlib
+import importlib
 import importlib.util
 import json
+import multiprocessing
 import platform
 import resource
 import statistics
+import tempfile
 import time
 from collections.abc import Callable, Iterator
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -70,7 +81,8 @@ import torch
 
 from svcode_core.cm2 import CM2Operator
 from svcode_core.config import N_LENSES, SystemConfig
-from svcode_core.lowrank import LowRankSVOperator, decompose_psfs
+from svcode_core.footprint import PeakMemory, doubled_system
+from svcode_core.lowrank import DEFAULT_MEMORY_BUDGET, LowRankSVOperator, decompose_psfs
 from svcode_core.phantoms import make_object
 from svcode_core.reference import lowrank_error
 from svcode_core.simulate import Simulator
@@ -87,6 +99,8 @@ SETTINGS = {
     "cm2-v2": {"lenses": (4, 0), "density": 0.3, "repeats": 3, "peer": 512},
 }
 PEER_LENS = 4  # the centre lens: the largest automatic K of both presets
+FIELD_RANK = 8  # fixed K of the field-size series
+FIELD_SMALL_BUDGET = 64 * 2**20  # bytes: the small operator budget of the field-size series
 BEAD_RADIUS = (0.5, 1.0)  # pixels: few nonzero pixels per bead keeps the reference cheap
 
 
@@ -212,21 +226,27 @@ def lens_timing(
     return {"lens_ms_f32": 1e3 * statistics.median(times), "lens_ms_f32_min": 1e3 * min(times)}
 
 
-def frame_timing(
+def _frame_in_process(
     system: SystemConfig,
-    psfs: np.ndarray,
+    psfs_path: str,
     rank: int | None,
     obj: np.ndarray,
     repeats: int,
     budget_gib: float,
     simulate: bool,
+    threads: int,
+    memory_budget: int | None,
 ) -> dict:
-    """Median ms of ``CM2Operator.measure`` (float32, 9 lenses); optionally ``simulate`` too."""
+    """Body of :func:`frame_timing`, run in a fresh process."""
+    torch.set_num_threads(threads)
+    psfs = np.load(psfs_path, mmap_mode="r")
     x = torch.as_tensor(obj, dtype=torch.float32)
     try:
-        with memory_limit(budget_gib):
+        with memory_limit(budget_gib), PeakMemory() as peak:
             start = time.perf_counter()
-            op = CM2Operator.from_psfs(system.replace(rank=None), psfs, rank=rank)
+            op = CM2Operator.from_psfs(
+                system.replace(rank=None), psfs, rank=rank, memory_budget=memory_budget
+            )
             build = time.perf_counter() - start
             times = median_seconds(lambda: op.measure(x), repeats)
             result = {
@@ -234,6 +254,10 @@ def frame_timing(
                 "frame_ms_min": 1e3 * min(times),
                 "frame_ms_runs": [1e3 * t for t in times],
                 "build_s": build,
+                "rank": op.rank,
+                "chunks": list(op.lenses.chunking(1)),
+                "kept_lenses": int(op.lenses._spectra.shape[0]),
+                "operator_estimate_mib": op.lenses.memory_estimate(1) / 2**20,
             }
             if simulate:
                 sim = Simulator(system, operator=op)
@@ -245,7 +269,57 @@ def frame_timing(
         if not out_of_memory(error):
             raise
         return {"frame_skipped": f"does not fit in {budget_gib:.1f} GiB"}
+    result["frame_peak_mib"] = peak.mib
+    with open("/proc/self/status", encoding="ascii") as handle:
+        status = dict(line.split(":", 1) for line in handle)
+    result["process_peak_mib"] = int(status["VmHWM"].split()[0]) / 1024
+    result["process_peak_vm_mib"] = int(status["VmPeak"].split()[0]) / 1024
     return result
+
+
+def frame_timing(
+    system: SystemConfig,
+    psfs: np.ndarray,
+    rank: int | None,
+    obj: np.ndarray,
+    repeats: int,
+    budget_gib: float,
+    simulate: bool,
+    threads: int = THREADS,
+    memory_budget: int | None = None,
+) -> dict:
+    """Median ms and peak memory of ``CM2Operator.measure`` (float32, 9 lenses), in a fresh
+    process (so that memory freed earlier cannot hide the peak); optionally ``simulate``."""
+    context = multiprocessing.get_context("spawn")
+    with tempfile.TemporaryDirectory() as folder:
+        path = str(Path(folder) / "psfs.npy")
+        np.save(path, psfs)
+        with ProcessPoolExecutor(1, mp_context=context) as pool:
+            return pool.submit(
+                _frame_in_process, system, path, rank, obj, repeats, budget_gib, simulate,
+                threads, memory_budget,
+            ).result()
+
+
+def field_series(sizes: int, repeats: int, budget_gib: float) -> list[dict]:
+    """Frame time and peak memory of ``cm2-mini`` at S, 2S, … at ``K = FIELD_RANK``, with the
+    default operator budget and with :data:`FIELD_SMALL_BUDGET`."""
+    system = SystemConfig.preset("cm2-mini")
+    rows = []
+    for _ in range(sizes):
+        psfs = system_psfs(system)
+        obj = bead_object(system.sub_view_size, SETTINGS["cm2-mini"]["density"])
+        for memory_budget in (None, FIELD_SMALL_BUDGET):
+            label = "default" if memory_budget is None else f"{memory_budget / 2**20:.0f} MiB"
+            log(f"  field {system.sub_view_size}² ({system.padded_shape[0]}² frame), "
+                f"K={FIELD_RANK}, budget {label}")
+            row = frame_timing(system, psfs, FIELD_RANK, obj, repeats, budget_gib, False,
+                               memory_budget=memory_budget)
+            budget = DEFAULT_MEMORY_BUDGET if memory_budget is None else memory_budget
+            rows.append({"size": system.sub_view_size, "padded": list(system.padded_shape),
+                         "memory_budget_mib": budget / 2**20, **row})
+        system = doubled_system(system)
+    return rows
 
 
 # ----------------------------------------------------------------------- peer
@@ -327,6 +401,12 @@ def peer_comparison(
     }
 
 
+def previous_peer(name: str) -> dict:
+    """The peer comparison of ``name`` in the committed ``forward.json`` (pylops needs numba)."""
+    previous = json.loads((RESULTS / "forward.json").read_text(encoding="utf-8"))
+    return previous["presets"][name]["peer"]
+
+
 def deepinv_status() -> str:
     """Why deepinv's SpaceVaryingBlur is (not) part of the comparison."""
     if importlib.util.find_spec("deepinv") is None:
@@ -368,21 +448,23 @@ def run_preset(name: str, ranks: tuple[int, ...], quick: bool, budget_gib: float
         row.update(lens_timing(psfs[PEER_LENS], lens_rank, obj, repeats, budget_gib))
         if simulate:
             log(f"  {name} K=auto: CM² frame timing on 1 thread (immune to thread starvation)")
-            torch.set_num_threads(1)
-            one = frame_timing(system, psfs, rank, obj, repeats, budget_gib, simulate=False)
-            torch.set_num_threads(THREADS)
+            one = frame_timing(system, psfs, rank, obj, repeats, budget_gib, False, threads=1)
             row["frame_ms_1thread"] = one.get("frame_ms")
             row["frame_ms_1thread_min"] = one.get("frame_ms_min")
     peer_size = settings["peer"] or size + 2 * margin
-    log(f"  {name}: peer comparison at {peer_size}² with {psfs.shape[1]} filters")
-    peer_obj = bead_object(peer_size, settings["density"] * 10, seed=1)
-    peer = peer_comparison(
-        psfs[PEER_LENS],
-        peer_size,
-        peer_obj,
-        1 if settings["peer"] else repeats,
-        system.rank_tolerance,
-    )
+    if importlib.util.find_spec("numba") is None:
+        log(f"  {name}: numba is not installed: peer comparison carried over from the last run")
+        peer = {**previous_peer(name), "carried_over": True}
+    else:
+        log(f"  {name}: peer comparison at {peer_size}² with {psfs.shape[1]} filters")
+        peer_obj = bead_object(peer_size, settings["density"] * 10, seed=1)
+        peer = peer_comparison(
+            psfs[PEER_LENS],
+            peer_size,
+            peer_obj,
+            1 if settings["peer"] else repeats,
+            system.rank_tolerance,
+        )
     return {
         "system": system.to_dict(),
         "psf_seconds": psf_seconds,
@@ -419,8 +501,8 @@ def preset_table(result: dict) -> list[str]:
     lines = [
         "| K | energy min / mean | worst err | "
         + " | ".join(f"err lens {lens}" for lens in shown)
-        + " | exact ref s | low-rank f64 ms | lens f32 ms | frame ms |",
-        "|---" * (7 + len(shown)) + "|",
+        + " | exact ref s | low-rank f64 ms | lens f32 ms | frame ms | frame peak MiB |",
+        "|---" * (8 + len(shown)) + "|",
     ]
     for row in result["rows"]:
         label = row["K"]
@@ -430,10 +512,9 @@ def preset_table(result: dict) -> list[str]:
         worst = None if None in errors else max(errors)
         if "frame_ms" in row:
             frame = f"{row['frame_ms']:.0f} ({row['frame_ms_min']:.0f})"
-        elif "lens_ms_f32" in row:
-            frame = f"skipped ({row['frame_skipped']}); 9 × lens ≈ {9 * row['lens_ms_f32']:.0f}"
+            peak = f"{_fmt(row['frame_peak_mib'], '.0f')} ({row['process_peak_mib']:.0f})"
         else:
-            frame = f"skipped ({row['frame_skipped']})"
+            frame, peak = f"skipped ({row['frame_skipped']})", "—"
         cells = [
             str(label),
             f"{row['captured_energy_min']:.4f} / {row['captured_energy_mean']:.4f}",
@@ -445,8 +526,29 @@ def preset_table(result: dict) -> list[str]:
             if "lens_ms_f32" in row
             else "—",
             frame,
+            peak,
         ]
         lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
+def field_table(rows: list[dict]) -> list[str]:
+    lines = [
+        "| sub-view S | frame | budget MiB | chunks (lenses × components) | kept spectra "
+        "| frame ms | frame peak MiB | process peak MiB |",
+        "|---" * 8 + "|",
+    ]
+    for row in rows:
+        if "frame_ms" not in row:
+            lines.append(f"| {row['size']}² | {row['padded'][0]}² | "
+                         f"{row['memory_budget_mib']:.0f} | skipped | | | | |")
+            continue
+        lines.append(
+            f"| {row['size']}² | {row['padded'][0]}² | {row['memory_budget_mib']:.0f} "
+            f"| {row['chunks'][0]} × {row['chunks'][1]} | {row['kept_lenses']} lenses "
+            f"| {row['frame_ms']:.0f} ({row['frame_ms_min']:.0f}) "
+            f"| {_fmt(row['frame_peak_mib'], '.0f')} | {row['process_peak_mib']:.0f} |"
+        )
     return lines
 
 
@@ -501,9 +603,13 @@ def markdown(report: dict) -> str:
         "ms`: one lens image of the centre lens in float32 at the same K, the unit cost of "
         "a frame. `frame ms`: a full CM² frame, `CM2Operator.measure`, all nine "
         "lenses, float32. Timings are the median (and, in brackets, the minimum) of several "
-        "calls after a warm-up. Each operator is built "
-        "(`CM2Operator.from_psfs`) and run under an address-space limit of "
-        f"{machine['memory_budget_gib']:.1f} GiB, and orders that do not fit are skipped. "
+        "calls after a warm-up. Each frame operator is built (`CM2Operator.from_psfs`, "
+        "default memory budget of 1 GiB for its kept kernel spectra and working chunks) and "
+        "run in a fresh process under an address-space limit of "
+        f"{machine['memory_budget_gib']:.1f} GiB. `frame peak MiB`: rise of the peak "
+        "resident set while building the operator and running the frames, over the process "
+        "before (PSFs and object loaded); in brackets the peak resident set of the whole "
+        "process (Python, torch, PSFs included). "
         "`auto`: the smallest K per lens leaving out at most `rank_tolerance` of the PSF "
         "energy (the frame operator pads all lenses to the largest).",
         "",
@@ -537,7 +643,20 @@ def markdown(report: dict) -> str:
                 f"{auto['frame_ms_1thread_min']:.0f}).",
                 "",
             ]
+    field = report["field"]
     lines += [
+        "## Memory and time against the field size",
+        "",
+        f"`cm2-mini` at S = {field[0]['size']} and its doubled systems "
+        "(`footprint.doubled_system`: sensor, padding, sub-view and chief rays doubled, "
+        f"optics and 33² kernel unchanged), K = {FIELD_RANK}, one frame (`measure`), "
+        "with the operator's default budget and a small one. The frame's own images grow "
+        "with the field (4× per doubling); the operator's kernel spectra and working chunks "
+        "stay within its budget: a smaller budget keeps fewer spectra (recomputed per "
+        "chunk) and applies fewer terms at a time, trading time for memory.",
+        "",
+        *field_table(field),
+        "",
         "## Peer: pylops `NonStationaryConvolve2D` (numba engine)",
         "",
         f"One lens image of the centre lens ({PEER_LENS}), float32. pylops interpolates the "
@@ -549,7 +668,14 @@ def markdown(report: dict) -> str:
         "uses for the same PSF field: the smallest K within `rank_tolerance`, cubic "
         "coefficient maps. cm2-v2 is measured on a 512² crop with the full 129² kernel (the "
         "direct method on the whole lens image would take minutes per call). pylops times "
-        "exclude numba compilation.",
+        "exclude numba compilation."
+        + (
+            " **Not rerun this time** (numba, which pylops's engine needs, is not installed "
+            "in this environment): the rows are those of the previous run, whose operator "
+            "did not yet chunk; the chunked operator computes the same map."
+            if any(r["peer"].get("carried_over") for r in results.values())
+            else ""
+        ),
         "",
         *peer_table(results),
         "",
@@ -573,6 +699,17 @@ def targets(results: dict) -> list[str]:
                 f"cm2-mini frame simulated (incl. noise) in under 1 s on 2 cores: "
                 f"{seconds:.3f} s (median) — {verdict}"
             )
+    if "cm2-v2" in results:
+        frames = [row for row in results["cm2-v2"]["rows"] if "frame_ms" in row]
+        peak = max(row["process_peak_mib"] for row in frames) if frames else None
+        verdict = "met" if len(frames) == len(results["cm2-v2"]["rows"]) and peak < 4096 else (
+            "NOT met"
+        )
+        lines.append(
+            f"cm2-v2 full frames at every K, each process within 4 GiB resident: "
+            f"{len(frames)} of {len(results['cm2-v2']['rows'])} orders, largest peak "
+            f"{_fmt(peak, '.0f')} MiB — {verdict}"
+        )
     for name, result in results.items():
         p = result["peer"]
         verdict = "met" if min(p["forward_speedup"], p["adjoint_speedup"]) >= 2 else "NOT met"
@@ -584,6 +721,12 @@ def targets(results: dict) -> list[str]:
             f"{p['auto_adjoint_speedup']:.1f}×"
         )
     return lines
+
+
+def _version(module: str) -> str:
+    if importlib.util.find_spec(module) is None:
+        return "not installed"
+    return importlib.import_module(module).__version__
 
 
 def main() -> None:
@@ -606,7 +749,8 @@ def main() -> None:
     log(f"presets {presets}, K {list(ranks)} + auto, {THREADS} threads, memory {budget:.1f} GiB")
     load_before = os.getloadavg()
     results = {name: run_preset(name, ranks, args.quick, budget) for name in presets}
-    import numba
+    log("memory against the field size")
+    field = field_series(2 if args.quick else 3, 3, budget)
     import pylops
 
     report = {
@@ -616,13 +760,14 @@ def main() -> None:
             "threads": THREADS,
             "torch": torch.__version__,
             "pylops": pylops.__version__,
-            "numba": numba.__version__,
+            "numba": _version("numba"),
             "load_before": [round(v, 2) for v in load_before],
             "load_after": [round(v, 2) for v in os.getloadavg()],
             "memory_budget_gib": budget,
             "quick": args.quick,
         },
         "presets": results,
+        "field": field,
         "deepinv": deepinv_status(),
     }
     report["targets"] = targets(results)

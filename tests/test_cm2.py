@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from svcode_core.cm2 import CM2Operator
+from svcode_core.cm2 import CM2Operator, simulation_cost
 from svcode_core.geometry import extract_sub_views, sub_view_origins
 
 
@@ -121,3 +121,35 @@ def test_measure_with_targets_matches_separate_calls(tiny_system):
     frame, targets = op.measure_with_targets(x)
     torch.testing.assert_close(frame, op.measure(x), rtol=0, atol=0)
     torch.testing.assert_close(targets, op.lens_images(x), rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("dtype, tol", [(torch.float32, 1e-5), (torch.float64, 1e-12)])
+def test_memory_budget_chunks_lenses_and_components_unevenly(tiny_system, dtype, tol):
+    psfs = gaussian_psfs(tiny_system)
+    whole = CM2Operator.from_psfs(tiny_system, psfs, rank=5, dtype=dtype)
+    per_lens, per_term = whole.lenses._costs(2)
+    spectra = 9 * 5 * whole.lenses._spectrum_bytes
+    budgets = {  # budget → (chunks of 9 lenses × 5 components, lenses with kept spectra)
+        spectra + per_lens + 2 * per_term: ((1, 2), 7),  # 1 × (2 + 2 + 1)
+        spectra + 2 * (per_lens + 5 * per_term): ((2, 5), 9),  # (2 + 2 + 2 + 2 + 1) × 5
+    }
+    gen = torch.Generator().manual_seed(0)
+    size = tiny_system.sub_view_size
+    x = torch.rand(2, size, size, generator=gen, dtype=dtype)
+    y = torch.randn(2, *tiny_system.padded_shape, generator=gen, dtype=dtype)
+    for budget, (chunks, kept) in budgets.items():
+        op = CM2Operator.from_psfs(tiny_system, psfs, rank=5, dtype=dtype, memory_budget=budget)
+        assert op.lenses.chunking(2) == chunks and op.lenses._spectra.shape[0] == kept
+        ax, aty = op.forward(x), op.adjoint(y)
+        for result, expected in ((ax, whole.forward(x)), (aty, whole.adjoint(y))):
+            assert (result - expected).norm() <= tol * expected.norm()
+        assert abs((ax * y).sum() - (x * aty).sum()) <= tol * abs((ax * y).sum())
+
+
+def test_simulation_cost_names_the_rank_and_grows_with_the_field(tiny_system):
+    small = simulation_cost(tiny_system)
+    assert small.rank == CM2Operator.from_system(tiny_system).rank_report().ranks[0]
+    assert simulation_cost(tiny_system.replace(rank=3)).rank == 3
+    assert small.memory > 0 and small.seconds > 0
+    double = tiny_system.replace(sub_view_size=2 * tiny_system.sub_view_size)
+    assert simulation_cost(double).memory > small.memory

@@ -9,10 +9,12 @@ import scipy.signal
 import torch
 
 from svcode_core.lowrank import (
+    InterpolatedMaps,
     LowRankSVOperator,
     coefficient_maps,
     decompose_psfs,
     interpolation_basis,
+    plan_chunks,
 )
 
 TOLERANCE = {torch.float32: 1e-5, torch.float64: 1e-12}
@@ -79,6 +81,85 @@ def test_adjoint_dot_product(dtype, shape, kernel_shape, lenses):
     rhs = (x.double() * aty.double()).sum()
     scale = ax.double().norm() * y.double().norm()
     assert abs(lhs - rhs) / scale <= TOLERANCE[dtype]
+
+
+# Chunks that split 5 lenses and 7 components unevenly (2+2+1 and 3+3+1, 4+1 and 2+2+2+1),
+# one term at a time, and a single chunk; the budget keeps either no kernel spectrum or all.
+UNEVEN_CHUNKS = [(2, 3), (4, 2), (1, 1), (5, 7)]
+
+
+def factored_operator(dtype=torch.float64, budget=None, lenses=5, rank=7, seed=0):
+    """Random kernels with coefficient maps kept as :class:`InterpolatedMaps`, 19 × 22."""
+    generator = torch.Generator().manual_seed(seed)
+    kernels = torch.randn(lenses, rank, 5, 7, generator=generator, dtype=torch.float64)
+    grid = torch.rand(lenses, rank, 4, 3, generator=generator, dtype=torch.float64)
+    maps = InterpolatedMaps(
+        grid, interpolation_basis(4, 17, margin=1), interpolation_basis(3, 20, margin=1)
+    )
+    return LowRankSVOperator(kernels, maps, dtype=dtype, memory_budget=budget)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("kept", [True, False])
+@pytest.mark.parametrize("chunks", UNEVEN_CHUNKS)
+def test_chunked_operator_matches_one_chunk_and_is_adjoint(monkeypatch, dtype, kept, chunks):
+    whole = factored_operator(dtype)
+    op = factored_operator(dtype, budget=None if kept else 1)
+    assert op._spectra.shape[0] == (5 if kept else 0)
+    monkeypatch.setattr(op, "chunking", lambda batch=1: chunks)
+    generator = torch.Generator().manual_seed(1)
+    x = torch.randn(2, *op.shape, generator=generator, dtype=dtype)
+    y = torch.randn(2, 5, *op.shape, generator=generator, dtype=dtype)
+    ax, aty = op.forward(x), op.adjoint(y)
+    # the same terms summed in another order: a few roundings of each output value
+    for result, expected in ((ax, whole.forward(x)), (aty, whole.adjoint(y))):
+        error = (result.double() - expected.double()).norm() / expected.double().norm()
+        assert error <= TOLERANCE[dtype]
+    lhs, rhs = (ax.double() * y.double()).sum(), (x.double() * aty.double()).sum()
+    assert abs(lhs - rhs) / (ax.double().norm() * y.double().norm()) <= TOLERANCE[dtype]
+
+
+def test_factored_maps_equal_stored_maps():
+    op = factored_operator()
+    dense = LowRankSVOperator(op.kernels, op.weights, memory_budget=1)
+    assert op.weights.shape == (5, 7, 19, 22)
+    maps = coefficient_maps(op._maps.grid_weights[2].numpy(), (17, 20), margin=1)
+    np.testing.assert_allclose(op.weights[2].numpy(), maps, rtol=0, atol=1e-14)
+    x = torch.rand(19, 22, dtype=torch.float64)
+    torch.testing.assert_close(op.forward(x), dense.forward(x), rtol=0, atol=1e-13)
+    single = op.to(dtype=torch.float32)
+    assert isinstance(single._maps, InterpolatedMaps) and single.memory_budget == op.memory_budget
+    error = (single.forward(x.float()).double() - op.forward(x)).norm() / op.forward(x).norm()
+    assert error <= TOLERANCE[torch.float32]
+    mix = torch.rand(5, 7, dtype=torch.float64)
+    window = (slice(3, 9), slice(2, 20))
+    for operator in (op, dense):
+        mixed = operator.weight_maps(*window, mix=mix)
+        expected = torch.einsum("lkij,lk->lij", op.weights[..., window[0], window[1]], mix)
+        torch.testing.assert_close(mixed, expected, rtol=0, atol=1e-14)
+
+
+@pytest.mark.parametrize("batch", [1, 3])
+def test_budget_sets_the_chunks(batch):
+    shape, kernel_shape, dtype = (19, 22), (5, 7), torch.float32
+    per_lens, per_term = factored_operator(dtype)._costs(batch)
+    smallest = per_lens + per_term  # one lens, one component
+    seen = []
+    for budget in np.geomspace(smallest, 200 * smallest, 40).astype(int):
+        plan = plan_chunks(shape, kernel_shape, 5, 7, dtype, int(budget), batch)
+        assert plan.bytes <= budget or (plan.lenses, plan.components) == (1, 1)
+        assert plan.components == 7 or plan.lenses == 1
+        op = factored_operator(dtype, budget=int(budget))
+        assert op._spectra.shape[0] == plan.kept_lenses
+        assert op.chunking(batch) == (plan.lenses, plan.components)
+        factors = sum(t.nelement() * t.element_size() for t in (op.kernels, *op._maps.factors))
+        assert op.memory_estimate(batch) == plan.bytes + factors
+        seen.append((plan.lenses, plan.components))
+    assert seen[-1] == (5, 7) and any(7 % k for _, k in seen) and any(5 % n for n, _ in seen)
+    tiny = plan_chunks(shape, kernel_shape, 5, 7, dtype, 1, batch)  # below one term:
+    assert (tiny.kept_lenses, tiny.lenses, tiny.components) == (0, 1, 1)  # one at a time
+    with pytest.raises(ValueError, match="memory_budget"):
+        factored_operator(budget=0)
 
 
 def test_delta_gives_weighted_kernel_sum():

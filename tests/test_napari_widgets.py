@@ -267,6 +267,28 @@ def test_simulate_widget_makes_a_raw_frame(qtbot, tmp_path, tiny_system, make_na
     assert layer.metadata[SYSTEM_KEY] == tiny_system
 
 
+def test_simulate_widget_announces_or_refuses_a_large_simulation(
+    qtbot, tmp_path, tiny_system, make_napari_viewer, monkeypatch
+):
+    from napari_svcode.widgets import simulate as module
+
+    viewer = make_napari_viewer()
+    viewer.add_image(np.random.default_rng(2).random((70, 90)), name="cells")
+    widget = _dock(viewer, SimulateWidget)
+    widget._system_choice.source.value = widget._system_choice.FROM_FILE
+    widget._system_choice.path.value = tiny_system.save(tmp_path / "system.json")
+    warnings, errors = [], []
+    monkeypatch.setattr(module, "show_warning", warnings.append)
+    monkeypatch.setattr(module, "notify_error", lambda *args: errors.append(args))
+    monkeypatch.setattr(module, "_available_memory", lambda: 1)  # 1 byte: refused
+    assert widget.start() is None and "GiB" in errors[0][0] and not warnings
+    monkeypatch.setattr(module, "_available_memory", lambda: None)
+    monkeypatch.setattr(module, "LARGE_MEMORY", 0)  # everything is large: announced, run
+    worker = widget.start()
+    assert worker is not None and "GiB of memory" in warnings[0] and "K = " in warnings[0]
+    qtbot.waitUntil(lambda: "cells (simulated raw)" in viewer.layers, timeout=20_000)
+
+
 # ----------------------------------------------------------------- screenshot
 def test_screenshot_raw_frame_boxes_and_reconstruction(qtbot, tmp_path, make_napari_viewer):
     """The README picture: cm2-mini vessels sample, its sub-views and a reconstruction

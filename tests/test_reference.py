@@ -59,14 +59,21 @@ def test_lowrank_error_falls_with_rank_to_float_precision(order):
     assert all(row.lowrank_seconds > 0 and row.reference_seconds > 0 for row in table)
 
 
-def test_full_rank_operator_matches_reference_with_huge_amplitude():
+@pytest.mark.parametrize("chunked", [False, True])
+def test_full_rank_operator_matches_reference_with_huge_amplitude(chunked):
     psfs = gaussian_psf_grid()
     x = 1e6 * sparse_object((26, 26), seed=6)
     rows = interpolation_basis(5, 22, margin=2)
     reference = sv_convolve_reference(x, psfs, rows, rows)
-    op = LowRankSVOperator.from_decomposition(
-        decompose_psfs(psfs, tolerance=0.0), 22, margin=2, dtype=torch.float32
-    )
+    decomposition = decompose_psfs(psfs, tolerance=0.0)
+    op = LowRankSVOperator.from_decomposition(decomposition, 22, margin=2, dtype=torch.float32)
+    if chunked:  # the 25 components in chunks of 4 (6 × 4 + 1), their spectra kept
+        per_lens, per_term = op._costs(1)
+        budget = 25 * op._spectrum_bytes + per_lens + 4 * per_term
+        op = LowRankSVOperator.from_decomposition(
+            decomposition, 22, margin=2, dtype=torch.float32, memory_budget=budget
+        )
+        assert op.chunking(1) == (1, 4) and op._spectra.shape[0] == 1
     result = op.forward(torch.as_tensor(x, dtype=torch.float32)).double().numpy()
     assert np.linalg.norm(result - reference) <= 1e-5 * np.linalg.norm(reference)
 

@@ -10,6 +10,7 @@ builds from a raw frame with :func:`~svcode_core.geometry.pad_sensor_frame`.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -18,9 +19,9 @@ import torch
 
 from .config import N_LENSES, SystemConfig
 from .geometry import crop_to_sensor, extract_sub_views, place_sub_views
-from .lowrank import LowRankSVOperator, PSFDecomposition, decompose_psfs
+from .lowrank import LowRankSVOperator, PSFDecomposition, decompose_psfs, fft_shape, plan_chunks
 
-__all__ = ["CM2Operator"]
+__all__ = ["CM2Operator", "SimulationCost", "simulation_cost"]
 
 
 @dataclass(frozen=True)
@@ -88,6 +89,7 @@ class CM2Operator:
         tolerance: float | None = None,
         dtype: torch.dtype = torch.float32,
         device: torch.device | str | None = None,
+        memory_budget: int | None = None,
     ) -> CM2Operator:
         """Decompose each lens's PSF grid and build the operator.
 
@@ -103,6 +105,10 @@ class CM2Operator:
             Largest fraction of PSF energy left out.
         dtype, device
             Of the operator.
+        memory_budget : int, optional
+            Bytes for the lens blur's kept spectra and working memory
+            (:class:`~svcode_core.lowrank.LowRankSVOperator`; default
+            :data:`~svcode_core.lowrank.DEFAULT_MEMORY_BUDGET`).
         """
         psfs = np.asarray(psfs)
         if psfs.ndim != 4 or psfs.shape[0] != N_LENSES:
@@ -112,7 +118,8 @@ class CM2Operator:
         decompositions = [decompose_psfs(lens_psfs, rank, tolerance) for lens_psfs in psfs]
         margin = max(psfs.shape[-2:]) // 2
         lenses = LowRankSVOperator.from_decomposition(
-            decompositions, system.sub_view_size, margin=margin, dtype=dtype, device=device
+            decompositions, system.sub_view_size, margin=margin, dtype=dtype, device=device,
+            memory_budget=memory_budget,
         )
         return cls(system, lenses, margin, decompositions)
 
@@ -124,11 +131,14 @@ class CM2Operator:
         tolerance: float | None = None,
         dtype: torch.dtype = torch.float32,
         device: torch.device | str | None = None,
+        memory_budget: int | None = None,
     ) -> CM2Operator:
         """The operator of ``system`` with PSFs from its pupil model (:mod:`.optics`)."""
         from .optics import system_psfs
 
-        return cls.from_psfs(system, system_psfs(system), rank, tolerance, dtype, device)
+        return cls.from_psfs(
+            system, system_psfs(system), rank, tolerance, dtype, device, memory_budget
+        )
 
     # --------------------------------------------------------------- reports
     @property
@@ -210,3 +220,76 @@ class CM2Operator:
 
     def _targets_of(self, blur: torch.Tensor) -> torch.Tensor:
         return self._shrink(blur) * self._own_view_mask
+
+
+@dataclass(frozen=True)
+class SimulationCost:
+    """Estimated cost of building a system's operator and simulating one frame with it.
+
+    Attributes
+    ----------
+    memory : int
+        Peak bytes above what the process held before (PSFs, operator, the frame's images).
+    seconds : float
+        Wall time on this machine (from timed samples of the work, see
+        :func:`simulation_cost`).
+    rank : int
+        Low-rank order ``K`` assumed.
+    """
+
+    memory: int
+    seconds: float
+    rank: int
+
+
+def simulation_cost(
+    system: SystemConfig, memory_budget: int | None = None, dtype: torch.dtype = torch.float32
+) -> SimulationCost:
+    """Estimate, before building anything large, what :class:`~.simulate.Simulator` needs.
+
+    Computes and decomposes the PSFs of one lens (for their time, times nine, and for ``K``
+    when ``system.rank`` is unset: that of corner lens 0, the largest in the presets) and
+    times one FFT of the lens grid; the memory is the sum of the largest arrays: the PSFs
+    (float64, with the SVD's copies), the kept kernel spectra and the working chunk of the
+    lens blur (:func:`~.lowrank.plan_chunks`), and the frame's images (lens blur, targets,
+    padded frames, noise, the returned arrays). Not all are alive together, so it is an
+    upper estimate (at ``cm2-v2``: 2.8 GiB, while the whole ``svcode simulate`` process
+    peaks at 1.7 GiB resident).
+
+    Parameters
+    ----------
+    system : SystemConfig
+    memory_budget : int, optional
+        Of the operator (default :data:`~svcode_core.lowrank.DEFAULT_MEMORY_BUDGET`).
+    dtype : torch.dtype
+        Of the operator.
+    """
+    from .optics import lens_psfs
+
+    start = time.perf_counter()
+    psfs = lens_psfs(system, 0)
+    decomposition = decompose_psfs(psfs, system.rank, system.rank_tolerance)
+    psf_seconds = N_LENSES * (time.perf_counter() - start)
+    rank = decomposition.rank
+    kernel = psfs.shape[-2:]
+    size = system.sub_view_size + 2 * (max(kernel) // 2)
+    plan = plan_chunks((size, size), kernel, N_LENSES, rank, dtype, memory_budget)
+    fft = fft_shape((size, size), kernel)
+    sample = torch.zeros(fft, dtype=dtype)
+    start = time.perf_counter()
+    torch.fft.irfft2(torch.fft.rfft2(sample), s=fft)
+    fft_seconds = (time.perf_counter() - start) / 2
+    # forward FFT per term, kernel spectrum (about half an FFT) per term not kept, inverse per lens
+    recomputed = (N_LENSES - plan.kept_lenses) * rank
+    blur_seconds = fft_seconds * (N_LENSES * rank + recomputed / 2 + N_LENSES)
+    item = torch.finfo(dtype).bits // 8
+    rows, cols = system.padded_shape
+    images = item * (
+        2 * N_LENSES * size * size  # lens blur, its cut targets
+        + 8 * rows * cols  # placed, masked, cropped, noisy and re-padded frames
+        + 3 * N_LENSES * system.sub_view_size**2  # targets, views, their float32 copies
+    )
+    psf_bytes = 3 * N_LENSES * psfs.nbytes  # the grid, its stack and the SVD's copies
+    return SimulationCost(
+        memory=psf_bytes + plan.bytes + images, seconds=psf_seconds + blur_seconds, rank=rank
+    )

@@ -26,8 +26,9 @@ with ``size`` (radii of beads are absolute).
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import skimage.color
@@ -55,6 +56,7 @@ __all__ = [
 REFERENCE_SIZE = 384  # the size at which the structure lengths below are given
 _AREA = 1e4  # densities are per 100 × 100 pixels
 _MAX_SPLAT = 2_000_000  # pixels rendered per vectorised batch (bounds memory)
+_MAX_TREE_POINTS = 1_000_000  # centre-line samples rendered together (bounds memory)
 
 Range = float | tuple[float, float]
 
@@ -141,7 +143,7 @@ def _render_spots(
     return canvas.reshape(side, side)[pad:-pad, pad:-pad]
 
 
-def _grow_tree(
+def _tree_branches(
     rng: np.random.Generator,
     start: np.ndarray,
     heading: float,
@@ -150,15 +152,14 @@ def _grow_tree(
     depth: int,
     wiggle: float = 0.08,
     min_radius: float = 0.5,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Centre-line samples of a random branching tree of tapering radius.
+) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Centre-line samples of a random branching tree of tapering radius, branch by branch.
 
     Each branch is a smooth random walk (heading diffuses by ``wiggle`` rad per √px);
     children sprout along it with a smaller radius and a shorter length, down to ``depth``
-    levels or ``min_radius``. Returns points ``(N, 2)``, radii ``(N,)`` and the sample
-    spacing ``(N,)`` needed to render a line of constant cross-section.
+    levels or ``min_radius``. Yields, per branch, points ``(n, 2)``, radii ``(n,)`` and the
+    sample spacing ``(n,)`` needed to render a line of constant cross-section.
     """
-    points, radii, steps = [], [], []
     stack = [(np.asarray(start, dtype=np.float64), heading, radius, length, depth)]
     while stack:
         origin, angle, r0, span, level = stack.pop()
@@ -168,9 +169,7 @@ def _grow_tree(
         angles = angle + np.cumsum(rng.normal(0.0, wiggle * np.sqrt(step), n))
         path = origin + np.cumsum(step * np.stack([np.sin(angles), np.cos(angles)], 1), 0)
         taper = np.linspace(r0, r1, n)
-        points.append(path)
-        radii.append(taper)
-        steps.append(np.full(n, step))
+        yield path, taper, np.full(n, step)
         if level == 0:
             continue
         for _ in range(rng.poisson(1.0 + span / 80.0)):
@@ -180,7 +179,30 @@ def _grow_tree(
                 turn = rng.choice([-1.0, 1.0]) * rng.uniform(0.3, 1.2)
                 stack.append((path[k], angles[k] + turn, child, span * rng.uniform(0.35, 0.75),
                               level - 1))
-    return np.concatenate(points), np.concatenate(radii), np.concatenate(steps)
+
+
+def _grown_tree(size: int, rng: np.random.Generator, *args: Any, **kwargs: Any) -> np.ndarray:
+    """Grow a tree (:func:`_tree_branches` arguments) and render it at brightness 1.
+
+    Branches are rendered in groups of at least :data:`_MAX_TREE_POINTS` samples as they
+    grow, so memory does not grow with the tree (large fields grow trees of tens of
+    millions of samples).
+    """
+    img = np.zeros((size, size))
+    group: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+
+    def render() -> None:
+        tree = tuple(np.concatenate(part) for part in zip(*group, strict=True))
+        img[...] += _render_tree(size, tree, 1.0)
+        group.clear()
+
+    for branch in _tree_branches(rng, *args, **kwargs):
+        group.append(branch)
+        if sum(len(b[1]) for b in group) >= _MAX_TREE_POINTS:
+            render()
+    if group:
+        render()
+    return img
 
 
 def _render_tree(size: int, tree, brightness: float) -> np.ndarray:
@@ -362,13 +384,13 @@ def vessels(
             start[side % 2] = 0.0 if side < 2 else size - 1.0
             heading = np.arctan2(size / 2 - start[0], size / 2 - start[1]) + rng.normal(0, 0.4)
         trunk = max(0.6, _log_uniform(rng, radius) * scale)
-        tree = _grow_tree(rng, start, heading, trunk, size * rng.uniform(0.5, 1.2), depth=4)
-        img += _render_tree(size, tree, rng.uniform(0.4, 1.0))
+        tree = _grown_tree(size, rng, start, heading, trunk, size * rng.uniform(0.5, 1.2), depth=4)
+        img += tree * rng.uniform(0.4, 1.0)
     for _ in range(round(_log_uniform(rng, _as_range(capillaries, "capillaries")))):
-        tree = _grow_tree(rng, rng.uniform(0, size, 2), rng.uniform(0, 2 * np.pi),
-                          rng.uniform(0.5, 1.0), size * rng.uniform(0.05, 0.2), depth=2,
-                          wiggle=0.15)
-        img += _render_tree(size, tree, rng.uniform(0.05, 0.3))
+        tree = _grown_tree(size, rng, rng.uniform(0, size, 2), rng.uniform(0, 2 * np.pi),
+                           rng.uniform(0.5, 1.0), size * rng.uniform(0.05, 0.2), depth=2,
+                           wiggle=0.15)
+        img += tree * rng.uniform(0.05, 0.3)
     return _to_unit(img)
 
 
@@ -411,9 +433,9 @@ def neurons(
                                                              endpoint=False):
             angle += rng.normal(0, 0.3)
             start = centre + 0.8 * r * np.array([np.sin(angle), np.cos(angle)])
-            tree = _grow_tree(rng, start, angle, rng.uniform(0.25, 0.45) * r,
-                              r * rng.uniform(4, 14), depth=2, wiggle=0.12, min_radius=0.4)
-            img += _render_tree(size, tree, level * rng.uniform(0.2, 0.5))
+            tree = _grown_tree(size, rng, start, angle, rng.uniform(0.25, 0.45) * r,
+                               r * rng.uniform(4, 14), depth=2, wiggle=0.12, min_radius=0.4)
+            img += tree * (level * rng.uniform(0.2, 0.5))
     texture = sum(w * _smooth_noise(rng, size, s * scale) for w, s in ((0.5, 2), (1, 8), (1, 30)))
     neuropil = np.clip(1 + 0.5 * texture / texture.std(), 0, None) * _log_uniform(
         rng, _as_range(background, "background")

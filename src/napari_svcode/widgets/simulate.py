@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import napari
 import numpy as np
 from magicgui.widgets import CheckBox, Container, PushButton, SpinBox
 from napari.qt.threading import FunctionWorker, thread_worker
+from napari.utils.notifications import show_warning
 
+from svcode_core.cm2 import simulation_cost
 from svcode_core.config import ConfigError, SystemConfig
 from svcode_core.phantoms import from_image
 from svcode_core.simulate import Simulation
@@ -17,6 +21,9 @@ from ._choosers import SystemChooser, image_layer_box
 
 __all__ = ["SimulateWidget"]
 
+#: simulations estimated above these are announced before they start
+LARGE_MEMORY, LONG_SECONDS = 1 << 30, 10.0
+
 
 class SimulateWidget(Container):
     """Image an object through a CM² system: for teaching and for checking a calibration.
@@ -25,6 +32,9 @@ class SimulateWidget(Container):
     ``S × S`` object grid and normalised (:func:`svcode_core.phantoms.from_image`), then
     imaged with the system's SV forward model and sensor noise in a worker thread. The
     raw frame is added as ``"<layer> (simulated raw)"`` with the system in its metadata.
+    A simulation estimated (:func:`svcode_core.cm2.simulation_cost`) to need more than
+    1 GiB or 10 s is announced with its estimate first; one needing more memory than the
+    machine has available is refused.
     """
 
     def __init__(self, napari_viewer: napari.viewer.Viewer) -> None:
@@ -57,6 +67,9 @@ class SimulateWidget(Container):
             notify_error(err, "choose a grey or RGB image without NaN or Inf values")
             return None
 
+        if not self._affordable(system):
+            return None
+
         def run() -> Simulation:
             return simulator(system).simulate(obj, seed=self._seed.value,
                                               noise=self._noise.value)
@@ -69,6 +82,32 @@ class SimulateWidget(Container):
         worker.start()
         return worker
 
+    @staticmethod
+    def _affordable(system: SystemConfig) -> bool:
+        """Announce a large simulation's estimated cost; ``False`` if memory is short."""
+        cost = simulation_cost(system)
+        need = f"about {cost.memory / 2**30:.1f} GiB of memory and {cost.seconds:.0f} s"
+        available = _available_memory()
+        if available is not None and cost.memory > available:
+            notify_error(f"Simulating {system.name} needs {need}, but only "
+                         f"{available / 2**30:.1f} GiB is available.",
+                         "close other programs, or choose a smaller system")
+            return False
+        if cost.memory > LARGE_MEMORY or cost.seconds > LONG_SECONDS:
+            show_warning(f"Simulating {system.name} (K = {cost.rank}): {need}.")
+        return True
+
     def _add(self, name: str, scene: Simulation, system: SystemConfig) -> None:
         self._viewer.add_image(scene.measurement, name=f"{name} (simulated raw)",
                                colormap="gray", metadata=layer_metadata(system, "measurement"))
+
+
+def _available_memory() -> int | None:
+    """``MemAvailable`` of ``/proc/meminfo`` in bytes (``None`` where it is unknown)."""
+    try:
+        lines = Path("/proc/meminfo").read_text().splitlines()
+    except OSError:
+        return None
+    fields = dict(line.split(":", 1) for line in lines if ":" in line)
+    value = fields.get("MemAvailable", "").split()
+    return int(value[0]) * 1024 if value else None

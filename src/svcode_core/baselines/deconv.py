@@ -182,7 +182,8 @@ def richardson_lucy_deconvolve(
 def centre_psfs(operator: CM2Operator) -> torch.Tensor:
     """Each lens's PSF at the object centre, from the low-rank model, ``(9, h, w)``."""
     centre = operator.margin + operator.system.sub_view_size // 2
-    weights = operator.lenses.weights[:, :, centre, centre]  # (9, K)
+    pixel = slice(centre, centre + 1)
+    weights = operator.lenses.weight_maps(pixel, pixel)[..., 0, 0]  # (9, K)
     return torch.einsum("lk,lkij->lij", weights, operator.lenses.kernels)
 
 
@@ -203,8 +204,8 @@ def unit_centre_psfs(operator: CM2Operator) -> torch.Tensor:
 def lens_transmission(operator: CM2Operator) -> torch.Tensor:
     """Transmission ``T_ℓ(r)`` (total PSF energy) of each lens at every object pixel, (9, S, S)."""
     m, size = operator.margin, operator.system.sub_view_size
-    weights = operator.lenses.weights[..., m : m + size, m : m + size]
-    return torch.einsum("lkij,lk->lij", weights, operator.lenses.kernels.sum(dim=(-2, -1)))
+    inner = slice(m, m + size)
+    return operator.lenses.weight_maps(inner, inner, mix=operator.lenses.kernels.sum(dim=(-2, -1)))
 
 
 def fuse_views(

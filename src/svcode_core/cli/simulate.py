@@ -6,6 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
+from ..cm2 import CM2Operator
 from ..departures import NAMED_SETS, load_departures
 from ..outputs import check_outputs
 from ..phantoms import KINDS, from_image, make_object
@@ -36,6 +37,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="simulate the true instrument: a named set of departures from "
                         "the system, or a departures JSON file; system.json stays nominal "
                         "and departures.json records them")  # fmt: skip
+    parser.add_argument("--memory-budget", type=float, metavar="GIB",
+                        help="memory of the forward model's kept spectra and working chunks "
+                             "(default 1 GiB; the nominal instrument only)")
     parser.set_defaults(func=run)
 
 
@@ -60,7 +64,10 @@ def run(args: argparse.Namespace) -> int:
         )
     departures = None if args.departures is None else load_departures(args.departures, system)
     start = time.perf_counter()
-    simulator = Simulator(system, departures=departures)
+    budget = None if args.memory_budget is None else int(args.memory_budget * 2**30)
+    nominal = departures is None or departures.is_nominal
+    operator = CM2Operator.from_system(system, memory_budget=budget) if nominal else None
+    simulator = Simulator(system, operator, departures=departures)
     built = time.perf_counter()
     scene = simulator.simulate(obj, seed=args.seed, noise=not args.no_noise,
                                frames=args.frames, progress=args.frames > 1)
