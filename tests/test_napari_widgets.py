@@ -12,7 +12,7 @@ import torch
 
 pytest.importorskip("napari")
 
-import napari_svcode._layers as plugin_layers  # noqa: E402
+import napari_svcode._errors as plugin_errors  # noqa: E402
 from napari_svcode._layers import SYSTEM_KEY, layer_metadata, object_translate  # noqa: E402
 from napari_svcode.widgets import (  # noqa: E402
     CalibrationWidget,
@@ -46,7 +46,15 @@ def model_file(tmp_path, tiny_system) -> Path:
 def errors(monkeypatch) -> list[str]:
     """Messages of the plugin's error notifications."""
     shown: list[str] = []
-    monkeypatch.setattr(plugin_layers, "show_error", shown.append)
+    monkeypatch.setattr(plugin_errors, "show_error", shown.append)
+    return shown
+
+
+@pytest.fixture
+def warnings(monkeypatch) -> list[str]:
+    """Messages of the plugin's warning notifications."""
+    shown: list[str] = []
+    monkeypatch.setattr(plugin_errors, "show_warning", shown.append)
     return shown
 
 
@@ -62,8 +70,10 @@ def _dock(viewer, widget_class):
 
 
 def _use_model(widget, path: Path) -> None:
-    widget._model.source.value = widget._model.FROM_FILE
-    widget._model.path.value = path
+    """Choose the model file ``path`` in a widget's model chooser (Reconstruct: its method)."""
+    chooser = widget._panel.model if isinstance(widget, ReconstructWidget) else widget._model
+    chooser.source.value = chooser.FROM_FILE
+    chooser.path.value = path
 
 
 # ----------------------------------------------------------------- calibration
@@ -126,11 +136,11 @@ def test_reconstruct_frames_runs_the_current_frame_first(tiny_system, model_file
 
     model, _ = load_model(model_file)
     rec = Reconstructor(model, tiny_system, batch_size=8)
-    stack = _raw_stack(tiny_system, 3)
-    done = [item for item in reconstruct_frames(rec, stack, first=2, return_views=True)
+    stack = _raw_stack(tiny_system, 4)
+    done = [item for item in reconstruct_frames(rec, stack, first=1, return_views=True)
             if not isinstance(item, FrameProgress)]
-    assert [index for index, _ in done] == [2, 0, 1]
-    expected = rec.reconstruct(stack[1], return_views=True)
+    assert [index for index, _ in done] == [1, 2, 3, 0]  # the done frames stay contiguous
+    expected = rec.reconstruct(stack[3], return_views=True)
     np.testing.assert_allclose(done[2][1].reconstruction, expected.reconstruction)
     np.testing.assert_allclose(done[2][1].views, expected.views)
 
@@ -187,7 +197,7 @@ def test_reconstruct_cancel_stops_within_a_batch(qtbot, monkeypatch, tiny_system
                      metadata=layer_metadata(tiny_system, "measurement"))
     widget = _dock(viewer, ReconstructWidget)
     _use_model(widget, model_file)
-    widget._batch.value, widget._skip.value = 1, False  # 25 batches a frame, 150 in all
+    widget._panel.batch.value, widget._panel.skip.value = 1, False  # 25 batches a frame
     assert widget.start() is not None
     qtbot.waitUntil(lambda: len(calls) >= 3, timeout=30_000)
     widget.cancel()
@@ -218,7 +228,7 @@ def test_reconstruct_errors_are_notices(qtbot, tmp_path, tiny_system, model_file
     assert widget.start() is None and "trained for system 'other'" in errors[-1]
     assert "choose a model trained for this system" in errors[-1]
 
-    widget._model.source.value = widget._model.BUNDLED
+    widget._panel.model.source.value = widget._panel.model.BUNDLED
     assert widget.start() is None and "bundled" in errors[-1]
     assert len(errors) == 4 and widget.worker is None
 
@@ -287,7 +297,7 @@ def test_screenshot_raw_frame_boxes_and_reconstruction(qtbot, tmp_path, make_nap
     weights = bundled_model(system.name)
     if weights is None:  # until a trained model ships: a random one, one tile a frame
         weights = _model_file(tmp_path / "mini.safetensors", system)
-        widget._tile.value = system.sub_view_size
+        widget._panel.tile.value = system.sub_view_size
     _use_model(widget, weights)
     widget._layer.value = viewer.layers["vessels raw"]
     assert widget.start() is not None
