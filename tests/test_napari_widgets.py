@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -21,11 +22,28 @@ from napari_svcode.widgets import (  # noqa: E402
     SimulateWidget,
     reconstruct_frames,
 )
+from napari_svcode.widgets.reconstruct import STEPS  # noqa: E402
 from svcode_core.config import SystemConfig  # noqa: E402
 from svcode_core.network import ModelConfig, SVCoDe, save_model  # noqa: E402
 from svcode_core.reconstruct import FrameProgress, Reconstructor  # noqa: E402
 
 pytestmark = pytest.mark.gui
+
+
+
+def _keep_none_alive() -> None:
+    """PySide6 6.12.0 on Python 3.11 drops a reference to ``None`` on every call of a Qt
+    method that returns nothing; after some ten thousand calls ``None`` is freed and the
+    process aborts ("none_dealloc"), at the latest when it exits. Until the binding is
+    fixed, give ``None`` references that are never returned (from Python 3.12 on it is
+    immortal and needs none)."""
+    if sys.version_info < (3, 12) and sys.implementation.name == "cpython":
+        import ctypes
+
+        ctypes.c_ssize_t.from_address(id(None)).value += 1 << 40
+
+
+_keep_none_alive()
 
 SCREENSHOT = Path(__file__).resolve().parents[1] / "docs" / "images" / "napari.png"
 TINY_MODEL = ModelConfig(width=4, view_width=2, demix_enc_blocks=(1,), demix_dec_blocks=(1,),
@@ -238,6 +256,255 @@ def test_reconstruct_errors_are_notices(qtbot, tmp_path, tiny_system, model_file
     assert widget.start() is not None
     qtbot.waitUntil(lambda: widget._run.enabled, timeout=30_000)
     assert viewer.layers["reconstruction"].data.shape == (tiny_system.sub_view_size,) * 2
+
+
+def _shown(widget) -> bool:
+    return not widget.native.isHidden()
+
+
+def _wait_done(qtbot, widget, timeout: int = 120_000) -> None:
+    qtbot.waitUntil(lambda: widget._run.enabled and not widget.worker.is_running,
+                    timeout=timeout)
+
+
+def test_pickers_fit_their_role_and_tiling_defaults_come_from_the_core(make_napari_viewer):
+    from svcode_core.methods import reconstructor_defaults
+
+    viewer = make_napari_viewer()
+    viewer.open_sample("napari-svcode", "cells")  # ground truth first, then the raw frame
+    widget = _dock(viewer, ReconstructWidget)
+    assert widget._layer.value is viewer.layers["cells raw"]
+    assert widget._truth.value is viewer.layers["cells ground truth"]
+    defaults = reconstructor_defaults()
+    assert widget._panel.batch.value == defaults["batch_size"]
+    assert widget._panel.tile.value == (defaults["tile_size"] or 0)
+    assert widget._panel.skip.value == defaults["skip_empty"]
+    assert "admm" in widget._panel.method.choices
+    # a picker docked before the layers exist moves to the raw frame when it appears
+    viewer.layers.clear()
+    late = _dock(viewer, ReconstructWidget)
+    viewer.open_sample("napari-svcode", "beads")
+    assert late._layer.value is viewer.layers["beads raw"]
+
+
+def test_each_method_shows_only_its_options(make_napari_viewer):
+    from svcode_core.baselines import RL_ITERATIONS, settings_for
+    from svcode_core.methods import METHODS
+
+    viewer = make_napari_viewer()
+    viewer.open_sample("napari-svcode", "cells")
+    widget = _dock(viewer, ReconstructWidget)
+    panel = widget._panel
+    assert panel.method.choices == METHODS
+    expected = {"svcode": {"model", "precision", "tile", "batch", "skip"},
+                "admm": {"precision", "rank", "iterations", "tv_weight"},
+                "wiener": {"precision", "rank", "balance", "boundary"},
+                "rl": {"precision", "rank", "iterations"},
+                "multiwiener": {"weights", "precision"}, "fouriernet": {"weights", "precision"}}
+    for method, names in expected.items():
+        panel.method.value = method
+        assert {name for name, w in panel._widgets.items() if _shown(w)} == names, method
+    panel.method.value = "admm"
+    assert panel.iterations.value == settings_for(SystemConfig.preset("cm2-mini")).iterations
+    assert panel.precision.choices == ("fp32", "fp64")
+    panel.method.value = "rl"
+    assert panel.iterations.value == RL_ITERATIONS
+    assert not _shown(widget._second)
+    widget._compare.value = True
+    assert _shown(widget._second) and widget._second.method.value == "admm"
+
+
+def test_cells_sample_reconstructs_with_lsv_admm(qtbot, make_napari_viewer):
+    """After opening the cells sample the widget points at the raw frame, offers LSV-ADMM
+    and adds a finite S×S layer with it."""
+    viewer = make_napari_viewer()
+    viewer.open_sample("napari-svcode", "cells")
+    widget = _dock(viewer, ReconstructWidget)
+    widget._panel.method.value = "admm"
+    widget._panel.iterations.value = 2
+    assert widget.start() is not None
+    _wait_done(qtbot, widget, 300_000)
+    recon = viewer.layers["reconstruction"]
+    size = SystemConfig.preset("cm2-mini").sub_view_size
+    assert recon.data.shape == (size, size) and np.isfinite(recon.data).all()
+    assert recon.metadata["svcode_model"]["method"] == "admm"
+    [entry] = widget.results  # the ground truth was picked: quality and seconds
+    assert entry["seconds"] > 0 and np.isfinite(entry["psnr_ring"]) and 0 < entry["ssim"] <= 1
+    assert "LSV-ADMM" in widget._results.value and "PSNR" in widget._results.value
+
+
+def test_compare_two_methods_side_by_side(qtbot, tiny_system, model_file, make_napari_viewer):
+    viewer = make_napari_viewer()
+    stack = _raw_stack(tiny_system, 2)
+    viewer.add_image(stack, name="raw", metadata=layer_metadata(tiny_system, "measurement"))
+    size = tiny_system.sub_view_size
+    viewer.add_image(np.random.default_rng(1).random((size, size)), name="truth",
+                     translate=object_translate(tiny_system),
+                     metadata=layer_metadata(tiny_system, "object"))
+    viewer.dims.set_current_step(0, 1)
+    widget = _dock(viewer, ReconstructWidget)
+    assert widget._layer.value.name == "raw" and widget._truth.value.name == "truth"
+    _use_model(widget, model_file)
+    widget._compare.value = True
+    widget._second.method.value = "wiener"
+    assert widget.start() is not None
+    _wait_done(qtbot, widget)
+    first = viewer.layers["reconstruction A (svcode)"]
+    second = viewer.layers["reconstruction B (wiener)"]
+    assert first.data.shape == second.data.shape == (size, size)  # the current frame only
+    expected = widget_reconstructor(model_file, tiny_system).reconstruct(stack[1])
+    np.testing.assert_allclose(first.data, expected.reconstruction, atol=1e-6)
+    assert [entry["method"] for entry in widget.results] == ["svcode", "wiener"]
+    assert all({"psnr", "ssim", "psnr_centre", "psnr_ring", "seconds"} <= set(entry)
+               for entry in widget.results)
+    assert second.metadata["svcode_quality"]["method"] == "wiener"
+    assert viewer.canvas.grid.enabled and not viewer.layers["raw"].visible
+
+
+def test_costly_settings_ask_before_running(qtbot, make_napari_viewer, warnings):
+    viewer = make_napari_viewer()
+    viewer.open_sample("napari-svcode", "cells")
+    widget = _dock(viewer, ReconstructWidget)
+    assert not _shown(widget._warning)
+    widget._panel.tile.value = 7
+    assert _shown(widget._warning) and "16,129 tiles" in widget._warning.value
+    assert widget.start() is None and widget.worker is None
+    cause, fix = warnings[-1].split("\n")
+    assert "16,129 tiles" in cause and "Reconstruct anyway" in fix
+    assert widget._run.text == "Reconstruct anyway"
+    worker = widget.start()  # the way on: a second press runs it
+    assert worker is not None
+    widget.cancel()
+    _wait_done(qtbot, widget)
+    widget._panel.tile.value = 0  # back to the default: no warning
+    assert not _shown(widget._warning) and widget._run.text == "Reconstruct"
+
+
+def test_cancelled_stack_adds_only_the_frames_done(qtbot, monkeypatch, tiny_system, model_file,
+                                                   make_napari_viewer):
+    import napari_svcode.widgets.reconstruct as module
+    from svcode_core.network import load_model
+
+    model, _ = load_model(model_file)
+    slow = _SlowModel(model, 0.01)
+    monkeypatch.setattr(module, "cached_model", lambda path, system: (slow, tiny_system))
+    viewer = make_napari_viewer()
+    stack = _raw_stack(tiny_system, 5)
+    viewer.add_image(stack, name="raw", metadata=layer_metadata(tiny_system, "measurement"))
+    viewer.dims.set_current_step(0, 2)
+    widget = _dock(viewer, ReconstructWidget)
+    _use_model(widget, model_file)
+    widget._panel.batch.value, widget._panel.skip.value = 1, False
+    widget._views.value = True
+    assert widget.start() is not None
+    qtbot.waitUntil(lambda: widget.frames_done >= 1, timeout=60_000)
+    widget.cancel()
+    _wait_done(qtbot, widget)
+    done = widget.frames_done
+    assert 1 <= done < 5
+    recon, views = viewer.layers["reconstruction"], viewer.layers["demixed views"]
+    assert recon.data.shape[0] == views.data.shape[1] == done  # no zero frames
+    assert tuple(recon.translate)[0] == 2 and tuple(views.translate)[1] == 2
+    expected = widget_reconstructor(model_file, tiny_system).reconstruct(stack[2:2 + done])
+    np.testing.assert_allclose(recon.data, expected.reconstruction, atol=1e-6)
+    assert views.axis_labels[0] == "lens" and recon.axis_labels[0] == "frame"
+
+
+class _SlowModel(torch.nn.Module):
+    """A model that sleeps before every batch, so a cancel lands mid-run."""
+
+    def __init__(self, inner: torch.nn.Module, seconds: float) -> None:
+        super().__init__()
+        self.inner, self.seconds = inner, seconds
+
+    def forward(self, *args):
+        time.sleep(self.seconds)
+        return self.inner(*args)
+
+
+def test_progress_shows_in_the_widget_within_a_second_without_event_processing(
+        qtbot, monkeypatch, tiny_system, model_file, make_napari_viewer):
+    from qtpy.QtCore import QCoreApplication
+
+    inside, reentered = [], []
+    original_yielded = ReconstructWidget._on_yielded
+
+    def on_yielded(self, item):
+        inside.append(item)
+        try:
+            original_yielded(self, item)
+        finally:
+            inside.pop()
+
+    original_process = QCoreApplication.processEvents
+
+    def process_events(*args):
+        if inside:
+            reentered.append(args)
+        return original_process(*args)
+
+    monkeypatch.setattr(ReconstructWidget, "_on_yielded", on_yielded)
+    monkeypatch.setattr(QCoreApplication, "processEvents", staticmethod(process_events))
+    viewer = make_napari_viewer()
+    viewer.add_image(_raw_stack(tiny_system, 3), name="raw",
+                     metadata=layer_metadata(tiny_system, "measurement"))
+    widget = _dock(viewer, ReconstructWidget)
+    _use_model(widget, model_file)
+    seen: list[tuple[float, int, str]] = []
+    widget._progress.changed.connect(
+        lambda value: seen.append((time.perf_counter(), value, widget._status.value)))
+    pressed = time.perf_counter()
+    widget._run.changed.emit(True)  # as the button does
+    assert widget._status.value.startswith("Starting")  # at once, before the worker runs
+    qtbot.waitUntil(lambda: "preparing" in widget._status.value or bool(seen), timeout=1_000)
+    assert time.perf_counter() - pressed < 1.0
+    _wait_done(qtbot, widget)
+    assert seen and seen[-1][1] == widget._progress.max == 3 * STEPS
+    assert [value for _, value, _ in seen] == sorted(value for _, value, _ in seen)
+    assert widget._status.value.startswith("Done")
+    assert viewer.layers["reconstruction"].data.shape[0] == 3 and not reentered
+
+
+def test_errors_toast_cause_and_fix_and_log_the_full_text(tmp_path, tiny_system, model_file,
+                                                          make_napari_viewer, errors, caplog):
+    viewer = make_napari_viewer()
+    widget = _dock(viewer, ReconstructWidget)
+    (tmp_path / "deep").mkdir()
+    other = _model_file(tmp_path / "deep" / "other.safetensors",
+                        tiny_system.replace(name="other"))
+    _use_model(widget, other)
+    viewer.add_image(_raw_stack(tiny_system, 1)[0], name="raw",
+                     metadata=layer_metadata(tiny_system, "measurement"))
+    with caplog.at_level("ERROR", logger="napari_svcode"):
+        assert widget.start() is None
+    cause, fix = errors[-1].split("\n")
+    assert len(cause) <= 90 and str(tmp_path) not in cause and "other.safetensors" in cause
+    assert fix == "→ choose a model trained for this system"
+    assert str(other) in caplog.text and "differs" in caplog.text  # the full text is logged
+
+    widget._panel.method.value = "fouriernet"  # a learned baseline without a model file
+    assert widget.start() is None
+    assert errors[-1].count("\n") == 1 and "needs a trained model file" in errors[-1]
+
+
+def test_cli_command_for_a_folder(tiny_system, make_napari_viewer):
+    import shlex
+
+    from svcode_core.cli import build_parser
+
+    viewer = make_napari_viewer()
+    viewer.open_sample("napari-svcode", "cells")
+    widget = _dock(viewer, ReconstructWidget)
+    widget._panel.method.value = "admm"
+    widget._panel.iterations.value = 40
+    text = widget.copy_command()
+    assert text == widget._command_text.value and _shown(widget._command_text)
+    assert text.startswith("for f in FOLDER/*.tif; do svcode reconstruct")
+    command = text.split("; do ", 1)[1].removesuffix("; done")
+    command = command.replace('"$f"', "in.tif").replace('"${f%.tif}.recon.tif"', "out.tif")
+    args = build_parser().parse_args(shlex.split(command)[1:])
+    assert (args.method, args.iterations, args.system) == ("admm", 40, "cm2-mini")
+    assert args.tv_weight == widget._panel.tv_weight.value
 
 
 # ---------------------------------------------------------------------- masks

@@ -28,7 +28,13 @@ from napari.qt.threading import GeneratorWorker, thread_worker
 from napari.utils.notifications import show_info
 
 from svcode_core.config import SystemConfig, available_presets
-from svcode_core.methods import METHOD_TITLES, build_reconstructor, cli_arguments, iter_method
+from svcode_core.methods import (
+    LEARNED_METHODS,
+    METHOD_TITLES,
+    build_reconstructor,
+    cli_arguments,
+    iter_method,
+)
 from svcode_core.metrics import image_quality
 from svcode_core.reconstruct import FrameProgress, ReconstructionResult, check_frame_shape
 
@@ -48,8 +54,9 @@ __all__ = ["Job", "ReconstructWidget", "frame_order", "reconstruct_frames", "run
 RECONSTRUCTION = "reconstruction"
 DEMIXED = "demixed views"
 QUALITY_KEY = "svcode_quality"
-#: progress-bar steps per frame
-STEPS = 1000
+#: progress-bar steps per frame: the bar and its text change at most this often a frame
+#: (every Qt call from Python has a cost, so tile-by-tile updates are coalesced)
+STEPS = 100
 
 
 def frame_order(count: int, first: int = 0) -> list[int]:
@@ -252,6 +259,12 @@ class ReconstructWidget(Container):
             def build() -> Any:
                 return build_reconstructor(method, system, weights=weights, device=device,
                                            **options)
+
+            if method in LEARNED_METHODS:  # quick to load: its errors show at once
+                reconstructor = build()
+
+                def build() -> Any:
+                    return reconstructor
         return Job(method, build, description, name), system
 
     @staticmethod
@@ -338,9 +351,8 @@ class ReconstructWidget(Container):
         self._state = dict(
             system=system, jobs=jobs, count=count, first=first, truth=truth,
             lead=lead, translate=object_translate(system),
-            recon=np.zeros((count, size, size), dtype=np.float32),
-            views=np.zeros((9, count, size, size), dtype=np.float32) if views else None,
-            done=[], seconds=0.0, started=time.perf_counter(),
+            shapes=((count, size, size), (9, count, size, size) if views else None),
+            done=[], started=time.perf_counter(),
         )
         self.frames_done = 0
         self.results = []
@@ -357,10 +369,15 @@ class ReconstructWidget(Container):
         self._cancel.enabled = False
         self._status.value = "Cancelling after the current step…"
 
-    def _set_progress(self, job: int, frames_done: int, fraction: float, text: str) -> None:
+    def _set_progress(self, job: int, frames_done: int, fraction: float, text: str,
+                      force: bool = True) -> None:
         state = self._state
         steps = STEPS * (job * state["count"] + frames_done + fraction)
-        self._progress.value = min(int(steps), self._progress.max)
+        value = min(int(steps), STEPS * state["count"] * len(state["jobs"]))
+        if value == state.get("shown") and not force:
+            return
+        state["shown"] = value
+        self._progress.value = value
         self._status.value = text
 
     def _on_yielded(self, item: Started | FrameProgress | FrameDone) -> None:
@@ -368,8 +385,10 @@ class ReconstructWidget(Container):
         state = self._state
         job = state["jobs"][getattr(item, "job", state.get("job", 0))]
         title = METHOD_TITLES[job.method]
-        if isinstance(item, Started):
-            state.update(job=item.job, done=[])
+        if isinstance(item, Started):  # each job fills arrays of its own
+            recon, views = state["shapes"]
+            state.update(job=item.job, done=[], recon=np.zeros(recon, np.float32),
+                         views=None if views is None else np.zeros(views, np.float32))
             self._set_progress(item.job, 0, 0.0, f"{title}: preparing…")
             return
         done = len(state["done"])
@@ -378,7 +397,8 @@ class ReconstructWidget(Container):
             fraction = item.tiles_done / item.tiles_total if item.tiles_total else 0.0
             tiles = (f", tiles {item.tiles_done}/{item.tiles_total}"
                      if job.method == "svcode" else "")
-            self._set_progress(state["job"], done, fraction, f"{title}: {where}{tiles}")
+            self._set_progress(state["job"], done, fraction, f"{title}: {where}{tiles}",
+                               force=False)
             return
         state["done"].append(item.index)
         state["recon"][item.index] = item.result.reconstruction
@@ -452,7 +472,7 @@ class ReconstructWidget(Container):
         state = self._state
         self._run.enabled, self._cancel.enabled = True, False
         elapsed = time.perf_counter() - state["started"]
-        if self._progress.value >= self._progress.max:
+        if state.get("shown") == self._progress.max:
             self._status.value = f"Done in {elapsed:.1f} s."
         else:
             self._status.value = f"Stopped after {elapsed:.1f} s."
