@@ -524,10 +524,17 @@ def test_mask_widget_shows_a_cached_mask(qtbot, tiny_system, model_file, make_na
     expected = model.coordinate_mask("recon", "view", "conv2", tiny_system.sub_view_size, lens=5)
     np.testing.assert_allclose(layer.data, expected[1].numpy(), atol=1e-6)
     assert tuple(layer.translate) == object_translate(tiny_system)
+    np.testing.assert_allclose(layer.contrast_limits, (layer.data.min(), layer.data.max()))
+    assert "reconstruction network" in widget._stage.tooltip
+    assert widget._block.tooltip.startswith("view: ") and "lens-specific" in widget._block.tooltip
+    assert "3×3 depth-wise" in widget._gate.tooltip
 
     viewer.layers.remove(layer)
     assert widget.show_mask() is None  # served from the cache, no worker
     assert len(widget.cache) == 1 and layer.name in viewer.layers
+    widget._stage.value, widget._block.value = "demix", "enc0.0"
+    assert widget._block.tooltip == "enc0.0: encoder level 0 (features at 1/1 of the tile " \
+                                    "size), block 0"
 
 
 # ------------------------------------------------------------------- simulate
