@@ -95,8 +95,17 @@ def _use_model(widget, path: Path) -> None:
 
 
 # ----------------------------------------------------------------- calibration
-def test_calibration_box_move_updates_chief_rays_and_saves(tmp_path, tiny_system,
-                                                           make_napari_viewer, errors):
+def _drag(layer, index: int, shift) -> None:
+    """Drag point ``index`` of a Points layer by ``shift`` as the select mode does."""
+    start = np.asarray(layer.data[index], dtype=float)
+    layer.selected_data = {index}
+    layer._move({index}, start)
+    layer._move({index}, start + np.asarray(shift, dtype=float))
+    layer._drag_start = None
+
+
+def test_calibration_rays_and_one_box_move_together_and_save(tmp_path, tiny_system,
+                                                             make_napari_viewer, errors):
     viewer = make_napari_viewer()
     raw = viewer.add_image(_raw_stack(tiny_system, 1)[0], name="raw", translate=(5, 7))
     widget = _dock(viewer, CalibrationWidget)
@@ -108,25 +117,35 @@ def test_calibration_box_move_updates_chief_rays_and_saves(tmp_path, tiny_system
     widget._system_choice.path.value = system_file
     widget.show_sub_views()
     boxes, rays = viewer.layers["sub-views"], viewer.layers["chief rays"]
-    assert len(boxes.data) == len(rays.data) == 9
-    assert list(boxes.features["lens"]) == list(range(9))
+    assert len(boxes.data) == 1 and len(rays.data) == 9  # one box at a time
+    assert list(rays.text.values) == [f"lens {lens}" for lens in range(9)]
+    assert rays.text.translation[0] < 0  # each label just above its ray
     assert tuple(boxes.translate) == tuple(rays.translate) == (5, 7)
     size, pad = tiny_system.sub_view_size, np.asarray(tiny_system.padding)
-    for lens, (vertices, ray) in enumerate(zip(boxes.data, rays.data, strict=True)):
-        chief = np.asarray(tiny_system.chief_rays[lens])
-        np.testing.assert_allclose(vertices.min(0), chief - size // 2 - pad - 0.5)
-        np.testing.assert_allclose(vertices.max(0), chief - size // 2 - pad + size - 0.5)
-        np.testing.assert_allclose(ray, chief - pad)
+
+    def check_box(lens: int, system: SystemConfig) -> None:
+        chief = np.asarray(system.chief_rays[lens])
+        np.testing.assert_allclose(boxes.data[0].min(0), chief - size // 2 - pad - 0.5)
+        np.testing.assert_allclose(boxes.data[0].max(0), chief - size // 2 - pad + size - 0.5)
+
+    check_box(4, tiny_system)
+    for lens, ray in enumerate(rays.data):
+        np.testing.assert_allclose(ray, np.asarray(tiny_system.chief_rays[lens]) - pad)
+    widget._lens.value = 2
+    check_box(2, tiny_system)
     assert raw.metadata[SYSTEM_KEY] == tiny_system
 
-    moved = [vertices.copy() for vertices in boxes.data]
-    moved[2] += np.array([2.0, -3.0])  # nudge lens 2's box down 2 px and left 3 px
-    boxes.data = moved
+    _drag(rays, 6, (2.0, -3.0))  # dragging lens 6's ray selects it and moves its box
     expected = list(tiny_system.chief_rays)
-    expected[2] = (expected[2][0] + 2, expected[2][1] - 3)
-    assert widget.system.chief_rays == tuple(expected)
-    np.testing.assert_allclose(rays.data[2], np.asarray(expected[2]) - pad)
+    expected[6] = (expected[6][0] + 2, expected[6][1] - 3)
+    assert widget._lens.value == 6 and widget.system.chief_rays == tuple(expected)
+    check_box(6, widget.system)
     assert raw.metadata[SYSTEM_KEY] == widget.system
+
+    boxes.data = [boxes.data[0] + np.array([1.0, 1.0])]  # dragging the box moves the ray
+    expected[6] = (expected[6][0] + 1, expected[6][1] + 1)
+    assert widget.system.chief_rays == tuple(expected)
+    np.testing.assert_allclose(rays.data[6], np.asarray(expected[6]) - pad)
 
     widget._out.value = tmp_path / "edited" / "system.json"
     (tmp_path / "edited").mkdir()
@@ -134,8 +153,8 @@ def test_calibration_box_move_updates_chief_rays_and_saves(tmp_path, tiny_system
     saved = SystemConfig.load(tmp_path / "edited" / "system.json")
     assert saved == tiny_system.replace(chief_rays=tuple(expected))
 
-    boxes.data = moved[:8]  # a deleted box is refused, the system is kept
-    assert "exactly nine boxes" in errors[-1]
+    boxes.data = [boxes.data[0], boxes.data[0]]  # a second box is refused, the system kept
+    assert "one box at a time" in errors[-1]
     assert widget.system == saved
 
 
