@@ -45,7 +45,8 @@ def _keep_none_alive() -> None:
 
 _keep_none_alive()
 
-SCREENSHOT = Path(__file__).resolve().parents[1] / "docs" / "images" / "napari.png"
+IMAGES = Path(__file__).resolve().parents[1] / "docs" / "images"
+COMPARE_ADMM_ITERATIONS = 10
 TINY_MODEL = ModelConfig(width=4, view_width=2, demix_enc_blocks=(1,), demix_dec_blocks=(1,),
                          recon_enc_blocks=(1,), recon_dec_blocks=(1,), mlp_hidden=8, pe_bands=2)
 
@@ -399,6 +400,19 @@ def test_costly_settings_ask_before_running(qtbot, make_napari_viewer, warnings)
     assert not _shown(widget._warning) and widget._run.text == "Reconstruct"
 
 
+def test_a_run_that_would_not_fit_in_memory_warns(monkeypatch):
+    import napari_svcode.widgets._methods as methods
+
+    class Memory:
+        available = 4 << 30
+
+    monkeypatch.setattr(methods.psutil, "virtual_memory", lambda: Memory)
+    assert methods.Cost(10.0, 1 << 30, "300 frames").warning() is None
+    warning = methods.Cost(10.0, 5 << 30, "300 frames").warning()
+    assert warning == "needs about 5.0 GiB, 4.0 GiB free (300 frames)"
+    assert "about 2.0 h" in methods.Cost(7200.0, 0, "16,129 tiles").warning()
+
+
 def test_cancelled_stack_adds_only_the_frames_done(qtbot, monkeypatch, tiny_system, model_file,
                                                    make_napari_viewer):
     import napari_svcode.widgets.reconstruct as module
@@ -427,6 +441,7 @@ def test_cancelled_stack_adds_only_the_frames_done(qtbot, monkeypatch, tiny_syst
     expected = widget_reconstructor(model_file, tiny_system).reconstruct(stack[2:2 + done])
     np.testing.assert_allclose(recon.data, expected.reconstruction, atol=1e-6)
     assert views.axis_labels[0] == "lens" and recon.axis_labels[0] == "frame"
+    assert viewer.dims.axis_labels[0] == "lens"  # the slider is labelled, not "-3"
 
 
 class _SlowModel(torch.nn.Module):
@@ -574,8 +589,6 @@ def test_simulate_widget_makes_a_raw_frame(qtbot, tmp_path, tiny_system, make_na
 def test_screenshot_raw_frame_boxes_and_reconstruction(qtbot, tmp_path, make_napari_viewer):
     """The README picture: cm2-mini vessels sample, its sub-views and a reconstruction
     (written to docs/images/napari.png with ``SVCODE_UPDATE_SCREENSHOT=1``)."""
-    from skimage.io import imsave
-
     from napari_svcode._resources import bundled_model
 
     system = SystemConfig.preset("cm2-mini")
@@ -598,11 +611,51 @@ def test_screenshot_raw_frame_boxes_and_reconstruction(qtbot, tmp_path, make_nap
     recon = viewer.layers["reconstruction"]
     recon.blending, recon.opacity = "additive", 0.8
     viewer.layers.selection.active = viewer.layers["sub-views"]
+    _screenshot(qtbot, viewer, "napari.png", tmp_path)
+
+
+def _screenshot(qtbot, viewer, name: str, tmp_path: Path) -> np.ndarray:
+    """Screenshot of the window; written to docs/images/``name`` only with
+    ``SVCODE_UPDATE_SCREENSHOT=1``, so a test run leaves the tree clean."""
+    from skimage.io import imsave
+
     viewer.reset_view()
-    qtbot.wait(200)
+    qtbot.wait(300)
     image = viewer.screenshot(canvas_only=False, flash=False)
     assert image.ndim == 3 and image.shape[0] > 400
     assert image[..., :3].std() > 20, "screenshot looks blank"
-    # the README's picture is rewritten only on request, so a test run leaves the tree clean
-    target = SCREENSHOT if os.environ.get("SVCODE_UPDATE_SCREENSHOT") else tmp_path / "napari.png"
+    target = IMAGES / name if os.environ.get("SVCODE_UPDATE_SCREENSHOT") else tmp_path / name
     imsave(target, image[..., :3], check_contrast=False)
+    return image
+
+
+def test_screenshot_compare_view(qtbot, tmp_path, make_napari_viewer):
+    """The README's compare picture: SV-CoDe and LSV-ADMM on the vessels sample, side by
+    side with the ground truth, quality and seconds in the widget."""
+    viewer = make_napari_viewer(show=True)
+    viewer.window.resize(1400, 820)
+    viewer.open_sample("napari-svcode", "vessels")
+    _, widget = viewer.window.add_plugin_dock_widget("napari-svcode", "Reconstruct")
+    widget._compare.value = True
+    widget._second.method.value = "admm"
+    widget._second.iterations.value = COMPARE_ADMM_ITERATIONS
+    assert widget.start() is not None
+    _wait_done(qtbot, widget, 600_000)
+    assert len(widget.results) == 2 and all("psnr" in entry for entry in widget.results)
+    grid = [layer.name for layer in viewer.layers if layer.visible]
+    assert grid == ["vessels ground truth", "reconstruction A (svcode)",
+                    "reconstruction B (admm)"]
+    _screenshot(qtbot, viewer, "napari-compare.png", tmp_path)
+
+
+def test_screenshot_calibration_overlay(qtbot, tmp_path, make_napari_viewer):
+    """The README's calibration picture: labelled chief rays and the box of one lens."""
+    viewer = make_napari_viewer(show=True)
+    viewer.window.resize(1200, 800)
+    viewer.open_sample("napari-svcode", "vessels")
+    _, widget = viewer.window.add_plugin_dock_widget("napari-svcode", "Calibration")
+    assert widget._layer.value is viewer.layers["vessels raw"]
+    widget.show_sub_views()
+    widget._lens.value = 1
+    assert len(viewer.layers["sub-views"].data) == 1
+    _screenshot(qtbot, viewer, "napari-calibration.png", tmp_path)

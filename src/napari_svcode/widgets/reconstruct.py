@@ -156,6 +156,7 @@ class ReconstructWidget(Container):
         self._progress = ProgressBar(min=0, max=STEPS, value=0, label="progress")
         self._status = Label(value="")
         self._results = Label(value="")
+        self._results.native.setWordWrap(True)
         self._command = PushButton(text="Copy CLI command (for a folder)")
         self._command_text = TextEdit(value="", visible=False)
         self._command_text.read_only = True
@@ -489,6 +490,7 @@ class ReconstructWidget(Container):
         canvas = getattr(self._viewer, "canvas", None)
         grid = canvas.grid if canvas is not None and hasattr(canvas, "grid") else \
             self._viewer.grid
+        grid.shape = (1, len(names) + (truth is not None))  # one row, side by side
         grid.enabled = True
         self._viewer.reset_view()
 
