@@ -88,6 +88,42 @@ def _dock(viewer, widget_class):
     return widget
 
 
+def _stack_in_widget(viewer, system: SystemConfig, model_file: Path, frames: int,
+                     current: int = 0) -> tuple[np.ndarray, ReconstructWidget]:
+    """A random raw stack as layer "raw" at frame ``current``, and a Reconstruct widget
+    set to the model file."""
+    stack = _raw_stack(system, frames)
+    viewer.add_image(stack, name="raw", metadata=layer_metadata(system, "measurement"))
+    viewer.dims.set_current_step(0, current)
+    widget = _dock(viewer, ReconstructWidget)
+    _use_model(widget, model_file)
+    return stack, widget
+
+
+class _SlowModel(torch.nn.Module):
+    """A model that counts its calls and sleeps before each, so a cancel lands mid-run."""
+
+    def __init__(self, inner: torch.nn.Module, seconds: float) -> None:
+        super().__init__()
+        self.inner, self.seconds, self.calls = inner, seconds, 0
+
+    def forward(self, *args):
+        self.calls += 1
+        time.sleep(self.seconds)
+        return self.inner(*args)
+
+
+def _slow_model(monkeypatch, model_file: Path, system: SystemConfig,
+                seconds: float) -> _SlowModel:
+    """Make the Reconstruct widget use a slow copy of the model in ``model_file``."""
+    import napari_svcode.widgets.reconstruct as module
+    from svcode_core.network import load_model
+
+    model = _SlowModel(load_model(model_file)[0], seconds)
+    monkeypatch.setattr(module, "cached_model", lambda path, system_: (model, system))
+    return model
+
+
 def _use_model(widget, path: Path) -> None:
     """Choose the model file ``path`` in a widget's model chooser (Reconstruct: its method)."""
     chooser = widget._panel.model if isinstance(widget, ReconstructWidget) else widget._model
@@ -185,11 +221,7 @@ def test_reconstruct_frames_runs_the_current_frame_first(tiny_system, model_file
 
 def test_reconstruct_widget_adds_layers(qtbot, tiny_system, model_file, make_napari_viewer):
     viewer = make_napari_viewer()
-    stack = _raw_stack(tiny_system, 3)
-    viewer.add_image(stack, name="raw", metadata=layer_metadata(tiny_system, "measurement"))
-    viewer.dims.set_current_step(0, 1)
-    widget = _dock(viewer, ReconstructWidget)
-    _use_model(widget, model_file)
+    stack, widget = _stack_in_widget(viewer, tiny_system, model_file, 3, current=1)
     widget._views.value = True
     assert widget.start() is not None
     qtbot.waitUntil(lambda: widget._run.enabled, timeout=30_000)
@@ -213,35 +245,19 @@ def widget_reconstructor(path: Path, system: SystemConfig) -> Reconstructor:
 def test_reconstruct_cancel_stops_within_a_batch(qtbot, monkeypatch, tiny_system, model_file,
                                                  make_napari_viewer):
     import napari_svcode.widgets.reconstruct as module
-    from svcode_core.network import load_model
 
-    calls, notices = [], []
-
-    class CountingModel(torch.nn.Module):
-        def __init__(self, inner: torch.nn.Module) -> None:
-            super().__init__()
-            self.inner = inner
-
-        def forward(self, *args):
-            calls.append(None)
-            time.sleep(0.005)  # at least 0.75 s in all, so the cancel lands mid-run
-            return self.inner(*args)
-
-    model = CountingModel(load_model(model_file)[0])
-    monkeypatch.setattr(module, "cached_model", lambda path, system: (model, tiny_system))
+    notices = []
+    model = _slow_model(monkeypatch, model_file, tiny_system, 0.005)  # ≥ 0.75 s in all
     monkeypatch.setattr(module, "show_info", notices.append)
     viewer = make_napari_viewer()
-    viewer.add_image(_raw_stack(tiny_system, 6), name="raw",
-                     metadata=layer_metadata(tiny_system, "measurement"))
-    widget = _dock(viewer, ReconstructWidget)
-    _use_model(widget, model_file)
+    _, widget = _stack_in_widget(viewer, tiny_system, model_file, 6)
     widget._panel.batch.value, widget._panel.skip.value = 1, False  # 25 batches a frame
     assert widget.start() is not None
-    qtbot.waitUntil(lambda: len(calls) >= 3, timeout=30_000)
+    qtbot.waitUntil(lambda: model.calls >= 3, timeout=30_000)
     widget.cancel()
-    at_cancel = len(calls)
+    at_cancel = model.calls
     qtbot.waitUntil(lambda: widget._run.enabled, timeout=30_000)
-    assert len(calls) <= at_cancel + 1  # at most the batch that was running
+    assert model.calls <= at_cancel + 1  # at most the batch that was running
     assert widget.frames_done < 6 and not widget._cancel.enabled
     assert notices and "cancelled after" in notices[-1]
 
@@ -415,18 +431,9 @@ def test_a_run_that_would_not_fit_in_memory_warns(monkeypatch):
 
 def test_cancelled_stack_adds_only_the_frames_done(qtbot, monkeypatch, tiny_system, model_file,
                                                    make_napari_viewer):
-    import napari_svcode.widgets.reconstruct as module
-    from svcode_core.network import load_model
-
-    model, _ = load_model(model_file)
-    slow = _SlowModel(model, 0.01)
-    monkeypatch.setattr(module, "cached_model", lambda path, system: (slow, tiny_system))
+    _slow_model(monkeypatch, model_file, tiny_system, 0.01)
     viewer = make_napari_viewer()
-    stack = _raw_stack(tiny_system, 5)
-    viewer.add_image(stack, name="raw", metadata=layer_metadata(tiny_system, "measurement"))
-    viewer.dims.set_current_step(0, 2)
-    widget = _dock(viewer, ReconstructWidget)
-    _use_model(widget, model_file)
+    stack, widget = _stack_in_widget(viewer, tiny_system, model_file, 5, current=2)
     widget._panel.batch.value, widget._panel.skip.value = 1, False
     widget._views.value = True
     assert widget.start() is not None
@@ -442,18 +449,6 @@ def test_cancelled_stack_adds_only_the_frames_done(qtbot, monkeypatch, tiny_syst
     np.testing.assert_allclose(recon.data, expected.reconstruction, atol=1e-6)
     assert views.axis_labels[0] == "lens" and recon.axis_labels[0] == "frame"
     assert viewer.dims.axis_labels[0] == "lens"  # the slider is labelled, not "-3"
-
-
-class _SlowModel(torch.nn.Module):
-    """A model that sleeps before every batch, so a cancel lands mid-run."""
-
-    def __init__(self, inner: torch.nn.Module, seconds: float) -> None:
-        super().__init__()
-        self.inner, self.seconds = inner, seconds
-
-    def forward(self, *args):
-        time.sleep(self.seconds)
-        return self.inner(*args)
 
 
 def test_progress_shows_in_the_widget_within_a_second_without_event_processing(
@@ -480,10 +475,7 @@ def test_progress_shows_in_the_widget_within_a_second_without_event_processing(
     monkeypatch.setattr(ReconstructWidget, "_on_yielded", on_yielded)
     monkeypatch.setattr(QCoreApplication, "processEvents", staticmethod(process_events))
     viewer = make_napari_viewer()
-    viewer.add_image(_raw_stack(tiny_system, 3), name="raw",
-                     metadata=layer_metadata(tiny_system, "measurement"))
-    widget = _dock(viewer, ReconstructWidget)
-    _use_model(widget, model_file)
+    _, widget = _stack_in_widget(viewer, tiny_system, model_file, 3)
     seen: list[tuple[float, int, str]] = []
     widget._progress.changed.connect(
         lambda value: seen.append((time.perf_counter(), value, widget._status.value)))
