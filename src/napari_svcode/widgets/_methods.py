@@ -105,8 +105,11 @@ class MethodPanel(Container):
         self.tile = SpinBox(label="tile size", min=0, max=8192,
                             value=defaults.get("tile_size") or 0,
                             tooltip="tile side P in pixels; 0: the system's patch size")
-        self.batch = SpinBox(label="batch size", min=1, max=1024, value=defaults["batch_size"],
-                             tooltip="tiles per model call (more: faster, more memory)")
+        batch = defaults.get("batch_size")
+        self.batch = SpinBox(label="batch size", min=0, max=1024,
+                             value=batch if isinstance(batch, int) else 0,
+                             tooltip="tiles per model call (more: faster, more memory); "
+                                     "0: the core's default")
         self.skip = CheckBox(text="skip empty tiles", value=defaults["skip_empty"],
                              tooltip="do not run tiles without signal above the noise")
         self.rank = SpinBox(label="rank K", min=0, max=1024, value=0,
@@ -157,8 +160,9 @@ class MethodPanel(Container):
         method = self.method.value
         values = {"precision": self.precision.value}
         if method == "svcode":
-            values.update(tile_size=self.tile.value or None, batch_size=self.batch.value,
-                          skip_empty=self.skip.value)
+            values.update(tile_size=self.tile.value or None, skip_empty=self.skip.value)
+            if self.batch.value:  # else the core's default
+                values["batch_size"] = self.batch.value
         elif method in ("admm", "wiener", "rl"):
             values["rank"] = self.rank.value or None
             if method in ("admm", "rl"):

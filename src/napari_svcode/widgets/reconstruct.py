@@ -262,10 +262,7 @@ class ReconstructWidget(Container):
                                            **options)
 
             if method in LEARNED_METHODS:  # quick to load: its errors show at once
-                reconstructor = build()
-
-                def build() -> Any:
-                    return reconstructor
+                build = _returning(build())
         return Job(method, build, description, name), system
 
     @staticmethod
@@ -536,6 +533,11 @@ class ReconstructWidget(Container):
         LOG.info("svcode reconstruct command: %s", text)
         show_info("Copied the `svcode reconstruct` command for a folder (replace FOLDER).")
         return text
+
+
+def _returning(value: Any) -> Callable[[], Any]:
+    """A function that returns ``value`` (an already built reconstructor)."""
+    return lambda: value
 
 
 def _summary(entry: dict[str, Any]) -> str:
