@@ -359,8 +359,17 @@ def test_cells_sample_reconstructs_with_lsv_admm(qtbot, make_napari_viewer):
     widget = _dock(viewer, ReconstructWidget)
     widget._panel.method.value = "admm"
     widget._panel.iterations.value = 2
+    ranges: list[int] = []  # the bar is indeterminate while ADMM reports nothing
+    set_progress = widget._set_progress
+
+    def spy(*args, **kwargs) -> None:
+        set_progress(*args, **kwargs)
+        ranges.append(widget._progress.native.maximum())
+
+    widget._set_progress = spy
     assert widget.start() is not None
     _wait_done(qtbot, widget, 300_000)
+    assert 0 in ranges and widget._progress.value == widget._progress.max == STEPS
     recon = viewer.layers["reconstruction"]
     size = SystemConfig.preset("cm2-mini").sub_view_size
     assert recon.data.shape == (size, size) and np.isfinite(recon.data).all()

@@ -368,14 +368,22 @@ class ReconstructWidget(Container):
         self._status.value = "Cancelling after the current step…"
 
     def _set_progress(self, job: int, frames_done: int, fraction: float, text: str,
-                      force: bool = True) -> None:
+                      force: bool = True, busy: bool = False) -> None:
+        """Show the progress (coalesced to :data:`STEPS` a frame) and ``text``; ``busy``
+        makes the bar indeterminate while a step reports nothing of its own (building a
+        forward model, a frame of a method without tiles)."""
         state = self._state
-        steps = STEPS * (job * state["count"] + frames_done + fraction)
-        value = min(int(steps), STEPS * state["count"] * len(state["jobs"]))
+        total = STEPS * state["count"] * len(state["jobs"])
+        if busy != state.get("busy", False):
+            state["busy"] = busy
+            self._progress.native.setRange(0, 0 if busy else total)
+            force = True
+        value = min(int(STEPS * (job * state["count"] + frames_done + fraction)), total)
         if value == state.get("shown") and not force:
             return
-        state["shown"] = value
-        self._progress.value = value
+        if not busy:
+            state["shown"] = value
+            self._progress.value = value
         self._status.value = text
 
     def _on_yielded(self, item: Started | FrameProgress | FrameDone) -> None:
@@ -387,16 +395,16 @@ class ReconstructWidget(Container):
             recon, views = state["shapes"]
             state.update(job=item.job, done=[], recon=np.zeros(recon, np.float32),
                          views=None if views is None else np.zeros(views, np.float32))
-            self._set_progress(item.job, 0, 0.0, f"{title}: preparing…")
+            self._set_progress(item.job, 0, 0.0, f"{title}: preparing…", busy=True)
             return
         done = len(state["done"])
         where = f"frame {done + 1} of {state['count']}" if state["count"] > 1 else "frame"
         if isinstance(item, FrameProgress):
             fraction = item.tiles_done / item.tiles_total if item.tiles_total else 0.0
-            tiles = (f", tiles {item.tiles_done}/{item.tiles_total}"
-                     if job.method == "svcode" else "")
+            tiled = job.method == "svcode"
+            tiles = f", tiles {item.tiles_done}/{item.tiles_total}" if tiled else " running…"
             self._set_progress(state["job"], done, fraction, f"{title}: {where}{tiles}",
-                               force=False)
+                               force=False, busy=not tiled)
             return
         state["done"].append(item.index)
         state["recon"][item.index] = item.result.reconstruction
@@ -469,6 +477,9 @@ class ReconstructWidget(Container):
     def _on_finished(self) -> None:
         state = self._state
         self._run.enabled, self._cancel.enabled = True, False
+        if state.get("busy"):
+            state["busy"] = False
+            self._progress.native.setRange(0, STEPS * state["count"] * len(state["jobs"]))
         elapsed = time.perf_counter() - state["started"]
         if state.get("shown") == self._progress.max:
             self._status.value = f"Done in {elapsed:.1f} s."
