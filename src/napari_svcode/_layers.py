@@ -20,10 +20,11 @@ from typing import Any
 
 import numpy as np
 from napari.layers import Layer
-from napari.utils.notifications import show_error
 
 from svcode_core.config import SystemConfig
 from svcode_core.geometry import sub_view_origins
+
+from ._errors import notify_error
 
 __all__ = [
     "CENTRAL_LENS",
@@ -101,11 +102,3 @@ def current_index(layer: Layer, point: tuple[float, ...]) -> tuple[int, ...]:
         int(np.clip(np.rint(value), 0, extent - 1))
         for value, extent in zip(position[: len(leading)], leading, strict=True)
     )
-
-
-def notify_error(problem: object, what_to_do: str = "") -> None:
-    """Show ``problem`` (an exception or text) and the remedy as a napari error notification."""
-    message = str(problem)
-    if what_to_do:
-        message = f"{message}\n→ {what_to_do}"
-    show_error(message)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -10,23 +10,72 @@ import napari
 from magicgui.widgets import ComboBox, Container, FileEdit
 from napari.layers import Image
 
-from svcode_core.config import SystemConfig, available_presets
+from svcode_core.config import ConfigError, SystemConfig, available_presets
 
-from .._layers import layer_system
+from .._layers import KIND_KEY, layer_system
 from .._resources import NO_BUNDLED_MODEL, bundled_model
 
-__all__ = ["ModelChooser", "SystemChooser", "image_layer_box"]
+__all__ = ["ModelChooser", "SystemChooser", "ground_truth_fit", "image_layer_box", "raw_frame_fit"]
 
 
-def image_layer_box(viewer: napari.viewer.Viewer, label: str) -> ComboBox:
-    """A combo box of the viewer's image layers that follows the layer list."""
+#: layer kinds that are never a raw frame
+NOT_RAW = ("object", "reconstruction", "demixed", "mask")
+
+
+def raw_frame_fit(layer: Any) -> int:
+    """How well ``layer`` fits as a raw frame: 0 not at all, 1 maybe (a grey 2-D or 3-D
+    image without a system), 2 a frame or stack of its system's sensor shape."""
+    if not isinstance(layer, Image) or layer.rgb or layer.ndim not in (2, 3):
+        return 0
+    if layer.metadata.get(KIND_KEY) in NOT_RAW:
+        return 0
+    try:
+        system = layer_system(layer.metadata)
+    except (ConfigError, TypeError, ValueError):
+        return 0
+    if system is None:
+        return 1
+    return 2 if tuple(layer.data.shape[-2:]) == tuple(system.sensor_shape) else 0
+
+
+def ground_truth_fit(layer: Any) -> int:
+    """How well ``layer`` fits as a ground truth: 1 for an object layer, else 0."""
+    return int(isinstance(layer, Image) and layer.metadata.get(KIND_KEY) == "object")
+
+
+def image_layer_box(viewer: napari.viewer.Viewer, label: str,
+                    fit: Callable[[Any], int] | None = None, nullable: bool = False,
+                    tooltip: str | None = None) -> ComboBox:
+    """A combo box of the viewer's image layers that follows the layer list.
+
+    With ``fit`` (a score, 0 = does not fit), the box moves to the best-fitting layer
+    whenever its current choice does not fit (or is empty) and a fitting one appears.
+    ``nullable`` adds an empty choice (shown as ``-----``).
+    """
 
     def choices(_widget: Any) -> list[tuple[str, Image]]:
         return [(layer.name, layer) for layer in viewer.layers if isinstance(layer, Image)]
 
-    box = ComboBox(label=label, choices=choices)
+    box = ComboBox(label=label, choices=choices, nullable=nullable, tooltip=tooltip)
+
+    def refit(*_: Any) -> None:
+        box.reset_choices()
+        if fit is None:
+            return
+        current = box.value
+        if current is not None and fit(current) > 0:
+            return
+        scored = [(fit(layer), index, layer) for index, layer in enumerate(viewer.layers)
+                  if isinstance(layer, Image)]
+        best = max(scored, key=lambda item: item[:2], default=None)
+        if best is not None and best[0] > 0:
+            box.value = best[2]
+        elif nullable:
+            box.value = None
+
     for event in (viewer.layers.events.inserted, viewer.layers.events.removed):
-        event.connect(box.reset_choices)
+        event.connect(refit)
+    refit()
     return box
 
 

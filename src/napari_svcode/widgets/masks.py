@@ -16,7 +16,44 @@ from .._layers import layer_metadata, notify_error, object_translate
 from .._resources import cached_model
 from ._choosers import ModelChooser
 
-__all__ = ["MaskWidget"]
+__all__ = ["MaskWidget", "block_help", "layer_help", "stage_help"]
+
+_STAGES = {
+    "demix": "demix: the demixing network (the nine raw sub-views → nine demixed views)",
+    "recon": "recon: the reconstruction network (the demixed views → the object)",
+}
+_LAYERS = {
+    "conv1": "1×1 convolution that widens the features (c → 2c) before the 3×3 one",
+    "conv2": "3×3 depth-wise convolution (the spatial filter of the block)",
+    "conv3": "1×1 convolution after the channel attention, back to c channels",
+    "conv4": "1×1 convolution that widens the features of the feed-forward part",
+    "conv5": "1×1 convolution at the end of the feed-forward part",
+}
+
+
+def stage_help(stage: str | None) -> str:
+    """Help text for a network stage (``"demix"`` or ``"recon"``)."""
+    return _STAGES.get(stage or "", "the network stage: demix or recon")
+
+
+def block_help(block: str | None) -> str:
+    """Help text for a block name such as ``"view"``, ``"enc1.0"``, ``"dec0.1"``, ``"middle.0"``."""
+    name, _, index = (block or "").partition(".")
+    if name == "view":
+        return "view: the first block, run on each lens's view with lens-specific masks"
+    for prefix, where in (("enc", "encoder"), ("dec", "decoder")):
+        if name.startswith(prefix) and name[len(prefix):].isdigit():
+            level = int(name[len(prefix):])
+            return (f"{block}: {where} level {level} (features at 1/{2 ** level} of the tile "
+                    f"size), block {index}")
+    if name == "middle":
+        return f"{block}: bottleneck block {index} (the coarsest features)"
+    return "the CoDe block: view, encL.i (encoder), middle.i, decL.i (decoder)"
+
+
+def layer_help(layer: str | None) -> str:
+    """Help text for a gated convolution of a block (``"conv1"`` ... ``"conv5"``)."""
+    return _LAYERS.get(layer or "", "the gated convolution of the block (conv1 … conv5)")
 
 
 class MaskWidget(Container):
@@ -33,11 +70,14 @@ class MaskWidget(Container):
         self._loaded: tuple | None = None  # (path, model, system, mask layers)
         self._model = ModelChooser()
         self._load = PushButton(text="Load model")
-        self._stage = ComboBox(label="stage", choices=self._stages)
-        self._block = ComboBox(label="block", choices=self._blocks)
-        self._gate = ComboBox(label="layer", choices=self._gates)
-        self._lens = SpinBox(label="lens", min=0, max=8)
-        self._channel = SpinBox(label="channel", min=0, max=0)
+        self._stage = ComboBox(label="stage", choices=self._stages, tooltip=stage_help(None))
+        self._block = ComboBox(label="block", choices=self._blocks, tooltip=block_help(None))
+        self._gate = ComboBox(label="layer", choices=self._gates, tooltip=layer_help(None))
+        self._lens = SpinBox(label="lens", min=0, max=8,
+                             tooltip="lens 0–8 (row by row); only the view block has "
+                                     "lens-specific masks")
+        self._channel = SpinBox(label="channel", min=0, max=0,
+                                tooltip="output channel of the layer whose mask is shown")
         self._run = PushButton(text="Show mask")
         super().__init__(widgets=[self._model, self._load, self._stage, self._block, self._gate,
                                   self._lens, self._channel, self._run])
@@ -45,6 +85,10 @@ class MaskWidget(Container):
         self._stage.changed.connect(self._block.reset_choices)
         self._block.changed.connect(self._gate.reset_choices)
         self._gate.changed.connect(self._update_channels)
+        for box, describe in ((self._stage, stage_help), (self._block, block_help),
+                              (self._gate, layer_help)):
+            box.changed.connect(lambda value, box=box, describe=describe:
+                                setattr(box, "tooltip", describe(value)))
         self._run.changed.connect(self.show_mask)
         self.cache: dict[tuple, np.ndarray] = {}
         self.worker: FunctionWorker | None = None
@@ -130,7 +174,10 @@ class MaskWidget(Container):
         if name in self._viewer.layers:
             show_info(f"{name!r} is already shown")
             return
-        self._viewer.add_image(
-            self.cache[key], name=name, colormap="viridis", contrast_limits=(0.0, 1.0),
+        mask = self.cache[key]
+        low, high = float(mask.min()), float(mask.max())
+        self._viewer.add_image(  # contrast from the mask's own range, e.g. 0.48–0.68
+            mask, name=name, colormap="viridis",
+            contrast_limits=(low, high if high > low else low + 1e-6),
             translate=object_translate(system), metadata=layer_metadata(system, "mask"),
         )

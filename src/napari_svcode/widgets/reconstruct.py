@@ -1,204 +1,457 @@
-"""Reconstruct dock widget: tiled SV-CoDe reconstruction in a worker thread, cancellable."""
+"""Reconstruct dock widget: any method of the core, or two compared, in a worker thread.
+
+The widget checks the input, builds the chosen method's reconstructor through
+:mod:`svcode_core.methods`, runs it in a worker thread and adds the results as layers; it
+draws its own progress bar and never processes events from inside a worker callback.
+"""
 
 from __future__ import annotations
 
-from collections.abc import Generator
+import shlex
+import time
+from collections.abc import Callable, Generator
+from dataclasses import dataclass, field
 from typing import Any
 
 import napari
 import numpy as np
-from magicgui.widgets import CheckBox, ComboBox, Container, PushButton, SpinBox
+from magicgui.widgets import (
+    CheckBox,
+    ComboBox,
+    Container,
+    Label,
+    ProgressBar,
+    PushButton,
+    TextEdit,
+)
 from napari.qt.threading import GeneratorWorker, thread_worker
-from napari.utils import progress
 from napari.utils.notifications import show_info
 
-from svcode_core.reconstruct import (
-    PRECISIONS,
-    FrameProgress,
-    ReconstructionResult,
-    Reconstructor,
-    check_frame_shape,
+from svcode_core.config import SystemConfig, available_presets
+from svcode_core.methods import (
+    LEARNED_METHODS,
+    METHOD_TITLES,
+    build_reconstructor,
+    cli_arguments,
+    iter_method,
 )
+from svcode_core.metrics import image_quality
+from svcode_core.reconstruct import FrameProgress, ReconstructionResult, check_frame_shape
 
+from .._errors import LOG, notify_error, notify_warning
 from .._layers import (
     current_index,
     layer_metadata,
     layer_system,
-    notify_error,
     object_translate,
 )
 from .._resources import available_devices, cached_model
-from ._choosers import ModelChooser, image_layer_box
+from ._choosers import ground_truth_fit, image_layer_box, raw_frame_fit
+from ._methods import MethodPanel
 
-__all__ = ["ReconstructWidget", "reconstruct_frames"]
+__all__ = ["Job", "ReconstructWidget", "frame_order", "reconstruct_frames", "run_jobs"]
 
 RECONSTRUCTION = "reconstruction"
 DEMIXED = "demixed views"
+QUALITY_KEY = "svcode_quality"
+#: progress-bar steps per frame: the bar and its text change at most this often a frame
+#: (every Qt call from Python has a cost, so tile-by-tile updates are coalesced)
+STEPS = 100
+
+
+def frame_order(count: int, first: int = 0) -> list[int]:
+    """Frames ``first, first + 1, ..., count - 1``, then ``first - 1, ..., 0``: the frames
+    done at any time form one contiguous range."""
+    return [*range(first, count), *range(first - 1, -1, -1)]
+
+
+@dataclass
+class Job:
+    """One method's run: how to build its reconstructor and what it is called."""
+
+    method: str
+    build: Callable[[], Any]
+    description: dict[str, Any] = field(default_factory=dict)
+    layer_name: str = RECONSTRUCTION
+
+
+@dataclass(frozen=True)
+class Started:
+    """Yielded by :func:`run_jobs` when job ``job`` starts building its reconstructor."""
+
+    job: int
+
+
+@dataclass(frozen=True)
+class FrameDone:
+    """Yielded by :func:`run_jobs` when a frame is reconstructed."""
+
+    job: int
+    index: int
+    result: ReconstructionResult
+    seconds: float
+
+
+def run_jobs(
+    jobs: list[Job], frames: np.ndarray, first: int = 0, return_views: bool = False
+) -> Generator[Started | FrameProgress | FrameDone, None, None]:
+    """Run every job over the ``(T, H, W)`` stack in :func:`frame_order`.
+
+    Yields :class:`Started` at once for each job, the core's
+    :class:`~svcode_core.reconstruct.FrameProgress` while a frame runs and
+    :class:`FrameDone` after it. Closing the generator stops it at the next yield.
+    """
+    for number, job in enumerate(jobs):
+        yield Started(number)
+        reconstructor = job.build()
+        for index in frame_order(len(frames), first):
+            start = time.perf_counter()
+            result = yield from iter_method(reconstructor, frames[index], return_views)
+            yield FrameDone(number, index, result, time.perf_counter() - start)
 
 
 def reconstruct_frames(
-    reconstructor: Reconstructor, frames: np.ndarray, first: int = 0, return_views: bool = False
+    reconstructor: Any, frames: np.ndarray, first: int = 0, return_views: bool = False
 ) -> Generator[FrameProgress | tuple[int, ReconstructionResult], None, None]:
-    """Reconstruct frame ``first`` of a ``(T, H, W)`` stack, then the others in order.
-
-    Yields the core's :class:`~svcode_core.reconstruct.FrameProgress` after every batch of
-    tiles and ``(frame index, ReconstructionResult)`` when a frame is done. Closing the
-    generator stops it after the current batch.
-    """
-    order = [first, *(index for index in range(len(frames)) if index != first)]
-    for index in order:
-        result = yield from reconstructor.iter_reconstruct(frames[index], return_views)
-        yield index, result
+    """Reconstruct a ``(T, H, W)`` stack with one reconstructor in :func:`frame_order`,
+    yielding progress and ``(frame index, result)``."""
+    job = Job("", lambda: reconstructor)
+    for item in run_jobs([job], frames, first, return_views):
+        if isinstance(item, FrameDone):
+            yield item.index, item.result
+        elif isinstance(item, FrameProgress):
+            yield item
 
 
 class ReconstructWidget(Container):
-    """Reconstruct a raw CM² frame or stack with a bundled or user model.
+    """Reconstruct a raw CM² frame or stack with any method, or compare two methods.
 
-    Runs in a worker thread with napari's progress bar; *Cancel* stops within one batch of
-    tiles. Adds a ``"reconstruction"`` layer (``(S, S)`` or ``(T, S, S)``) and, if asked,
-    ``"demixed views"`` (``(9, S, S)`` or ``(9, T, S, S)``: the lens axis first, so a
-    stack's frame axis stays aligned with the raw stack), placed over the raw frame.
+    *Reconstruct* runs the chosen method in a worker thread (progress below the button;
+    *Cancel* stops within one batch of tiles, or after the current frame for the other
+    methods) and adds ``"reconstruction"`` (``(S, S)`` or ``(T, S, S)``) and, if asked,
+    ``"demixed views"`` (``(9, S, S)`` or ``(9, T, S, S)``, axis ``lens`` first), placed
+    over the raw frame. A stack runs from the current frame to the end, then backwards,
+    and its layers hold only the frames done. *Compare* runs two methods on the current
+    frame and shows them side by side (grid view) with the seconds each took and, with a
+    ground-truth layer, PSNR / SSIM (centre and ring). Runs estimated to take very long or
+    not to fit in memory ask for a second press. *Copy CLI command* gives the equivalent
+    ``svcode reconstruct`` command for a folder of recordings.
     """
 
     def __init__(self, napari_viewer: napari.viewer.Viewer) -> None:
         self._viewer = napari_viewer
-        self._layer = image_layer_box(napari_viewer, "raw layer")
-        self._model = ModelChooser()
+        self._layer = image_layer_box(napari_viewer, "raw layer", fit=raw_frame_fit,
+                                      tooltip="a raw sensor frame (H×W) or stack (T×H×W)")
+        self._panel = MethodPanel("method")
+        self._compare = CheckBox(text="compare with a second method", value=False)
+        self._second = MethodPanel("second method", "admm")
+        self._truth = image_layer_box(napari_viewer, "ground truth", fit=ground_truth_fit,
+                                      nullable=True,
+                                      tooltip="optional: the true object (S×S) for PSNR/SSIM")
         self._device = ComboBox(label="device", choices=available_devices())
-        self._precision = ComboBox(label="precision", choices=list(PRECISIONS), value="fp32")
-        self._tile = SpinBox(label="tile size", min=0, max=8192, value=0,
-                             tooltip="tile side in pixels; 0 uses the system's patch size")
-        self._batch = SpinBox(label="batch size", min=1, max=1024, value=8)
-        self._skip = CheckBox(text="skip empty tiles", value=True)
         self._views = CheckBox(text="add the demixed views", value=False)
+        self._warning = Label(value="")
         self._run = PushButton(text="Reconstruct")
         self._cancel = PushButton(text="Cancel", enabled=False)
+        self._progress = ProgressBar(min=0, max=STEPS, value=0, label="progress")
+        self._status = Label(value="")
+        self._results = Label(value="")
+        self._results.native.setWordWrap(True)
+        self._command = PushButton(text="Copy CLI command (for a folder)")
+        self._command_text = TextEdit(value="", visible=False)
+        self._command_text.read_only = True
         super().__init__(widgets=[
-            self._layer, self._model, self._device, self._precision, self._tile, self._batch,
-            self._skip, self._views, self._run, self._cancel,
+            self._layer, self._panel, self._compare, self._second, self._truth, self._device,
+            self._views, self._warning, self._run, self._cancel, self._progress, self._status,
+            self._results, self._command, self._command_text,
         ])
+        self._second.visible = False
+        self._warning.visible = False
         self._run.changed.connect(self.start)
         self._cancel.changed.connect(self.cancel)
+        self._command.changed.connect(self.copy_command)
+        self._compare.changed.connect(self._on_compare)
+        self._layer.changed.connect(self._on_layer)
+        for widget in (self._panel, self._second, self._compare, self._layer, self._device,
+                       self._views):
+            widget.changed.connect(self._update_warning)
         self.worker: GeneratorWorker | None = None
         self.frames_done = 0
+        self.results: list[dict[str, Any]] = []
+        self._confirmed: tuple | None = None
         self._state: dict[str, Any] = {}
+        self._on_layer(self._layer.value)
 
     # ------------------------------------------------------------------ set-up
-    def _reconstructor(self, layer: napari.layers.Image) -> Reconstructor:
-        system = layer_system(layer.metadata)
-        path = self._model.model_path(system.name if system else None)
-        model, trained_for = cached_model(path, system)
-        if system is None:
-            show_info(f"Layer {layer.name!r} has no system configuration; using the model's "
-                      f"training system {trained_for.name!r}.")
-        tile = self._tile.value or None
-        self._state["model"] = {
-            "path": str(path), "architecture": type(model).__name__, "system": trained_for.name,
-            "device": self._device.value, "precision": self._precision.value,
-            "tile_size": tile, "batch_size": self._batch.value, "skip_empty": self._skip.value,
-        }
-        return Reconstructor(
-            model, trained_for, device=self._device.value, precision=self._precision.value,
-            tile_size=tile, batch_size=self._batch.value, skip_empty=self._skip.value,
-        )
+    def _on_compare(self, on: bool) -> None:
+        self._second.visible = on
+
+    def _on_layer(self, layer: napari.layers.Image | None) -> None:
+        system = self._layer_system(layer)
+        if system is not None:
+            self._panel.set_system(system)
+            self._second.set_system(system)
+        self._update_warning()
 
     @staticmethod
-    def _frames(layer: napari.layers.Image, reconstructor: Reconstructor) -> np.ndarray:
+    def _layer_system(layer: napari.layers.Image | None) -> SystemConfig | None:
+        try:
+            return layer_system(layer.metadata) if layer is not None else None
+        except (TypeError, ValueError):
+            return None
+
+    def _panels(self) -> list[MethodPanel]:
+        return [self._panel, self._second] if self._compare.value else [self._panel]
+
+    def _frame_count(self, layer: napari.layers.Image) -> int:
+        if self._compare.value or layer.ndim == 2:
+            return 1
+        return int(layer.data.shape[0])
+
+    def _cost_warning(self) -> str | None:
+        layer = self._layer.value
+        system = self._layer_system(layer)
+        if system is None:
+            return None
+        frames = self._frame_count(layer)
+        for panel in self._panels():
+            warning = panel.cost(system, frames, self._device.value, self._views.value).warning()
+            if warning:
+                return f"{panel.describe()} {warning}"
+        return None
+
+    def _update_warning(self, *_: Any) -> None:
+        warning = self._cost_warning()
+        self._warning.value = f"⚠ {warning}" if warning else ""
+        self._warning.visible = bool(warning)
+        self._run.text = "Reconstruct"
+        self._confirmed = None
+
+    def _settings_key(self) -> tuple:
+        panels = tuple((panel.method.value, tuple(sorted(panel.options().items())))
+                       for panel in self._panels())
+        return (id(self._layer.value), panels, self._device.value, self._views.value)
+
+    def _job(self, panel: MethodPanel, system: SystemConfig | None, name: str) -> tuple:
+        """The job of ``panel`` and the system it runs on (SV-CoDe: the model's)."""
+        method, device, options = panel.method.value, self._device.value, panel.options()
+        description = {"method": method, "device": device, **options}
+        if method == "svcode":
+            path = panel.weights_path(system.name if system else None)
+            model, trained_for = cached_model(path, system)
+            if system is None:
+                show_info(f"The layer has no system configuration; using the model's "
+                          f"training system {trained_for.name!r}.")
+            system = trained_for
+            description.update(path=str(path), architecture=type(model).__name__,
+                               system=trained_for.name)
+
+            def build() -> Any:
+                return build_reconstructor("svcode", trained_for, model=model, device=device,
+                                           **options)
+        else:
+            if system is None:
+                raise ValueError("the layer has no system configuration; "
+                                 "choose its system in the Calibration widget")
+            weights = panel.weights_path()
+            if weights is not None:
+                description["path"] = str(weights)
+
+            def build() -> Any:
+                return build_reconstructor(method, system, weights=weights, device=device,
+                                           **options)
+
+            if method in LEARNED_METHODS:  # quick to load: its errors show at once
+                build = _returning(build())
+        return Job(method, build, description, name), system
+
+    @staticmethod
+    def _frames(layer: napari.layers.Image, system: SystemConfig) -> np.ndarray:
         frames = np.asarray(layer.data)
         if layer.rgb or frames.ndim not in (2, 3):
             raise ValueError(f"layer {layer.name!r} has shape {frames.shape}; expected a raw "
                              "grey frame (H×W) or a frame stack (T×H×W)")
-        check_frame_shape(frames.shape[-2:], reconstructor.system)
+        check_frame_shape(frames.shape[-2:], system)
         bad = frames.size - np.count_nonzero(np.isfinite(frames))
         if bad:
             raise ValueError(f"layer {layer.name!r} holds {bad} NaN or Inf values")
         return frames if frames.ndim == 3 else frames[None]
 
+    def _truth_plane(self, system: SystemConfig) -> np.ndarray | None:
+        layer = self._truth.value
+        if layer is None:
+            return None
+        plane = np.asarray(layer.data[current_index(layer, self._viewer.dims.point)],
+                           dtype=np.float64)
+        size = system.sub_view_size
+        if plane.shape != (size, size):
+            raise ValueError(f"ground truth {layer.name!r} is {plane.shape[0]}×"
+                             f"{plane.shape[1]} pixels, not the {size}×{size} object grid; "
+                             "choose the object layer of this frame, or none")
+        return plane
+
     def start(self) -> GeneratorWorker | None:
-        """Check the inputs and start the reconstruction worker (errors become notices)."""
+        """Check the inputs and start the reconstruction worker (errors become notices).
+
+        Returns ``None`` without running when a check fails, or when the run would take
+        very long or not fit in memory and has not been confirmed by a second press.
+        """
         layer = self._layer.value
         if layer is None:
             notify_error("No raw image layer to reconstruct.",
                          "open a raw CM² frame (File ▸ Open) or a sample (File ▸ Open Sample)")
             return None
+        compare = self._compare.value
+        names = ([f"{RECONSTRUCTION} A ({self._panel.method.value})",
+                  f"{RECONSTRUCTION} B ({self._second.method.value})"] if compare
+                 else [RECONSTRUCTION])
         try:
-            reconstructor = self._reconstructor(layer)
+            system = self._layer_system(layer)
+            jobs, systems = [], []
+            for panel, name in zip(self._panels(), names, strict=True):
+                job, job_system = self._job(panel, system, name)
+                jobs.append(job)
+                systems.append(job_system)
+            system = systems[0]
+            frames = self._frames(layer, system)
+            truth = self._truth_plane(system)
         except (ValueError, FileNotFoundError) as err:
-            notify_error(err, "choose a model trained for this system, or set the layer's "
-                              "system in the Calibration widget")
+            notify_error(err, "check the raw layer, its system (Calibration) and the model")
             return None
-        try:
-            frames = self._frames(layer, reconstructor)
-        except ValueError as err:
-            notify_error(err, "open the raw sensor frame of this system (or set the right "
-                              "system in Calibration); replace NaN/Inf pixels, e.g. by 0")
+        warning = self._cost_warning()
+        if warning and self._confirmed != self._settings_key():
+            self._confirmed = self._settings_key()
+            self._run.text = "Reconstruct anyway"
+            notify_warning(warning, "press 'Reconstruct anyway' to run, or change the "
+                                    "settings (tile size, frames, iterations)")
             return None
         first = current_index(layer, self._viewer.dims.point)[0] if frames.shape[0] > 1 else 0
-        self._prepare_outputs(layer, reconstructor, frames.shape[0])
-        self.frames_done = 0
-        total = frames.shape[0] * len(reconstructor.grid)
-        self._state["progress"] = progress(total=total, desc="SV-CoDe reconstruction")
-        worker = thread_worker(reconstruct_frames, start_thread=False)(
-            reconstructor, frames, first, self._views.value
-        )
+        if compare:
+            frames, first = frames[first:first + 1], 0
+        views = self._views.value and not compare
+        self._prepare(layer, system, jobs, frames.shape[0], first, truth, views)
+        worker = thread_worker(run_jobs, start_thread=False)(jobs, frames, first, views)
         worker.yielded.connect(self._on_yielded)
+        worker.errored.connect(self._on_errored)
         worker.aborted.connect(self._on_aborted)
         worker.finished.connect(self._on_finished)
         self.worker = worker
         self._run.enabled, self._cancel.enabled = False, True
+        self._run.text = "Reconstruct"
+        self._confirmed = None
         worker.start()
         return worker
 
-    def _prepare_outputs(self, layer: napari.layers.Image, rec: Reconstructor, count: int) -> None:
-        size = rec.system.sub_view_size
-        self._state.update(
-            system=rec.system,
-            count=count,
-            tiles=len(rec.grid),
-            translate=(*layer.translate[:-2], *object_translate(rec.system)),
-            recon=np.zeros((count, size, size), dtype=np.float32),
-            views=np.zeros((9, count, size, size), dtype=np.float32) if self._views.value
-            else None,
+    def _prepare(self, layer: napari.layers.Image, system: SystemConfig, jobs: list[Job],
+                 count: int, first: int, truth: np.ndarray | None, views: bool) -> None:
+        size = system.sub_view_size
+        lead = (float(layer.translate[0]),) if count > 1 else ()
+        self._state = dict(
+            system=system, jobs=jobs, count=count, first=first, truth=truth,
+            lead=lead, translate=object_translate(system),
+            shapes=((count, size, size), (9, count, size, size) if views else None),
+            done=[], started=time.perf_counter(),
         )
+        self.frames_done = 0
+        self.results = []
+        self._results.value = ""
+        self._progress.max = STEPS * count * len(jobs)
+        self._progress.value = 0
+        self._status.value = f"Starting {METHOD_TITLES[jobs[0].method]}…"
 
     # ---------------------------------------------------------------- running
     def cancel(self) -> None:
-        """Ask the worker to stop after the batch of tiles it is running."""
+        """Ask the worker to stop after the batch of tiles (or the frame) it is running."""
         if self.worker is not None:
             self.worker.quit()
         self._cancel.enabled = False
+        self._status.value = "Cancelling after the current step…"
 
-    def _on_yielded(self, item: FrameProgress | tuple[int, ReconstructionResult]) -> None:
+    def _set_progress(self, job: int, frames_done: int, fraction: float, text: str,
+                      force: bool = True, busy: bool = False) -> None:
+        """Show the progress (coalesced to :data:`STEPS` a frame) and ``text``; ``busy``
+        makes the bar indeterminate while a step reports nothing of its own (building a
+        forward model, a frame of a method without tiles)."""
         state = self._state
-        if isinstance(item, FrameProgress):
-            fraction = item.tiles_done / item.tiles_total if item.tiles_total else 1.0
-            bar = state["progress"]
-            bar.n = int(state["tiles"] * (self.frames_done + fraction))
-            bar.set_description(f"SV-CoDe frame {self.frames_done + 1}/{state['count']}")
-            bar.refresh()
+        total = STEPS * state["count"] * len(state["jobs"])
+        if busy != state.get("busy", False):
+            state["busy"] = busy
+            self._progress.native.setRange(0, 0 if busy else total)
+            force = True
+        value = min(int(STEPS * (job * state["count"] + frames_done + fraction)), total)
+        if value == state.get("shown") and not force:
             return
-        index, result = item
-        self.frames_done += 1
-        state["recon"][index] = result.reconstruction
-        if state["views"] is not None:
-            state["views"][:, index] = result.views
-        self._show()
+        if not busy:
+            state["shown"] = value
+            self._progress.value = value
+        self._status.value = text
 
-    def _show(self) -> None:
+    def _on_yielded(self, item: Started | FrameProgress | FrameDone) -> None:
+        # Only widget and layer updates here: never process events from a worker callback.
         state = self._state
-        single = state["count"] == 1
-        meta = layer_metadata(state["system"], RECONSTRUCTION, state["model"])
-        self._put_layer(RECONSTRUCTION, state["recon"][0] if single else state["recon"],
-                        state["translate"], meta, colormap="magma")
+        job = state["jobs"][getattr(item, "job", state.get("job", 0))]
+        title = METHOD_TITLES[job.method]
+        if isinstance(item, Started):  # each job fills arrays of its own
+            recon, views = state["shapes"]
+            state.update(job=item.job, done=[], recon=np.zeros(recon, np.float32),
+                         views=None if views is None else np.zeros(views, np.float32))
+            self._set_progress(item.job, 0, 0.0, f"{title}: preparing…", busy=True)
+            return
+        done = len(state["done"])
+        where = f"frame {done + 1} of {state['count']}" if state["count"] > 1 else "frame"
+        if isinstance(item, FrameProgress):
+            fraction = item.tiles_done / item.tiles_total if item.tiles_total else 0.0
+            tiled = job.method == "svcode"
+            tiles = f", tiles {item.tiles_done}/{item.tiles_total}" if tiled else " running…"
+            self._set_progress(state["job"], done, fraction, f"{title}: {where}{tiles}",
+                               force=False, busy=not tiled)
+            return
+        state["done"].append(item.index)
+        state["recon"][item.index] = item.result.reconstruction
         if state["views"] is not None:
-            views = state["views"][:, 0] if single else state["views"]
-            meta = layer_metadata(state["system"], "demixed", state["model"])
-            self._put_layer(DEMIXED, views, (0.0, *state["translate"]), meta, colormap="gray",
-                            visible=False)
+            state["views"][:, item.index] = item.result.views
+        self.frames_done = len(state["done"])
+        self._set_progress(item.job, self.frames_done, 0.0, f"{title}: {where} done")
+        self._show(job)
+        if self.frames_done == 1:
+            self._record(item, job)
+
+    def _record(self, item: FrameDone, job: Job) -> None:
+        """The seconds and (with a ground truth) quality of the job's first frame."""
+        entry = {"method": job.method, "layer": job.layer_name, "seconds": item.seconds}
+        truth = self._state["truth"]
+        if truth is not None:
+            span = float(truth.max() - truth.min()) or 1.0
+            try:
+                entry.update(image_quality(truth, item.result.reconstruction, span))
+            except ValueError as err:
+                notify_error(err, "choose a ground truth of the object grid, or none")
+        self.results.append(entry)
+        layer = self._viewer.layers[job.layer_name]
+        layer.metadata = {**layer.metadata, QUALITY_KEY: entry}
+        self._results.value = "\n".join(_summary(result) for result in self.results)
+
+    def _show(self, job: Job) -> None:
+        state = self._state
+        done = state["done"]
+        low, high = min(done), max(done) + 1  # frame_order keeps the done frames contiguous
+        single = state["count"] == 1
+        lead = tuple(value + low for value in state["lead"])
+        meta = layer_metadata(state["system"], RECONSTRUCTION, job.description)
+        data = state["recon"][0] if single else state["recon"][low:high]
+        self._put_layer(job.layer_name, data, (*lead, *state["translate"]), meta,
+                        ("frame",) if not single else (), colormap="magma")
+        if state["views"] is not None:
+            views = state["views"][:, 0] if single else state["views"][:, low:high]
+            meta = layer_metadata(state["system"], "demixed", job.description)
+            self._put_layer(DEMIXED, views, (0.0, *lead, *state["translate"]), meta,
+                            ("lens",) + (("frame",) if not single else ()),
+                            colormap="gray", visible=False)
 
     def _put_layer(self, name: str, data: np.ndarray, translate: tuple, meta: dict,
-                   **kwargs: Any) -> None:
+                   leading: tuple[str, ...], **kwargs: Any) -> None:
         layers = self._viewer.layers
+        labels = (*leading, "y", "x")
         if name in layers and layers[name].ndim == data.ndim:
             layer = layers[name]
             layer.data = data
@@ -209,13 +462,99 @@ class ReconstructWidget(Container):
                 layers.remove(name)
             layer = self._viewer.add_image(data, name=name, translate=translate,
                                            metadata=meta, **kwargs)
+        layer.axis_labels = labels
         if self.frames_done == 1:
             layer.reset_contrast_limits()
 
+    def _on_errored(self, err: Exception) -> None:
+        notify_error(err, "check the method's options and model file")
+
     def _on_aborted(self) -> None:
-        show_info(f"Reconstruction cancelled after {self.frames_done} of "
-                  f"{self._state['count']} frames.")
+        state = self._state
+        show_info(f"Reconstruction cancelled after {self.frames_done} of {state['count']} "
+                  "frames; only those were added.")
 
     def _on_finished(self) -> None:
-        self._state["progress"].close()
+        state = self._state
         self._run.enabled, self._cancel.enabled = True, False
+        if state.get("busy"):
+            state["busy"] = False
+            self._progress.native.setRange(0, STEPS * state["count"] * len(state["jobs"]))
+        elapsed = time.perf_counter() - state["started"]
+        if state.get("shown") == self._progress.max:
+            self._status.value = f"Done in {elapsed:.1f} s."
+        else:
+            self._status.value = f"Stopped after {elapsed:.1f} s."
+        if len(state["jobs"]) > 1:
+            self._show_side_by_side()
+
+    def _show_side_by_side(self) -> None:
+        """Grid view: the ground truth (if any) and both reconstructions, each in a cell."""
+        layers = self._viewer.layers
+        names = [job.layer_name for job in self._state["jobs"]]
+        truth = self._truth.value
+        for layer in layers:
+            layer.visible = layer.name in names or layer is truth
+        canvas = getattr(self._viewer, "canvas", None)
+        grid = canvas.grid if canvas is not None and hasattr(canvas, "grid") else \
+            self._viewer.grid
+        grid.shape = (1, len(names) + (truth is not None))  # one row, side by side
+        grid.enabled = True
+        self._viewer.reset_view()
+
+    # ---------------------------------------------------------------- hand-off
+    def command(self) -> str:
+        """The ``svcode reconstruct`` command of the current settings, for every TIFF of a
+        folder (a shell loop; replace ``FOLDER``)."""
+        layer = self._layer.value
+        system = self._layer_system(layer)
+        panel = self._panel
+        path = panel.weights_path(system.name if system else None) \
+            if panel.method.value != "svcode" or panel.model.source.value != panel.model.BUNDLED \
+            else None
+        options = {key: value for key, value in panel.options().items()
+                   if not (key == "precision" and value == "fp32")}
+        if self._device.value != "cpu":
+            options["device"] = self._device.value
+        arguments = cli_arguments(panel.method.value, path, **options)
+        if system is not None:
+            preset = system.name if system.name in available_presets() and \
+                SystemConfig.preset(system.name) == system else "system.json"
+            arguments = ["--system", preset, *arguments]
+        if self._views.value:
+            arguments += ["--views", '"${f%.tif}.views.tif"']
+        flags = " ".join(arg if arg.startswith('"') else shlex.quote(arg) for arg in arguments)
+        return ('for f in FOLDER/*.tif; do svcode reconstruct "$f" --out "${f%.tif}.recon.tif" '
+                f"{flags}; done")
+
+    def copy_command(self) -> str | None:
+        """Show the folder command in the widget and copy it to the clipboard."""
+        try:
+            text = self.command()
+        except ValueError as err:
+            notify_error(err, "choose a model file for this method first")
+            return None
+        self._command_text.value = text
+        self._command_text.visible = True
+        from qtpy.QtWidgets import QApplication
+
+        clipboard = QApplication.clipboard()
+        if clipboard is not None:
+            clipboard.setText(text)
+        LOG.info("svcode reconstruct command: %s", text)
+        show_info("Copied the `svcode reconstruct` command for a folder (replace FOLDER).")
+        return text
+
+
+def _returning(value: Any) -> Callable[[], Any]:
+    """A function that returns ``value`` (an already built reconstructor)."""
+    return lambda: value
+
+
+def _summary(entry: dict[str, Any]) -> str:
+    text = f"{METHOD_TITLES[entry['method']]}: {entry['seconds']:.1f} s"
+    if "psnr" in entry:
+        text += (f" · PSNR {entry['psnr']:.1f} dB (centre {entry['psnr_centre']:.1f}, "
+                 f"ring {entry['psnr_ring']:.1f}) · SSIM {entry['ssim']:.3f}")
+    return text
+
