@@ -664,7 +664,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the benchmark and write ``work_precision.{json,md,png}`` to ``args.out``.
+    """Run the benchmark and write ``regimes.{json,md,png}`` to ``args.out``.
 
     The figure has one work–precision panel per regime.
     """
@@ -679,7 +679,7 @@ def run(args: argparse.Namespace) -> int:
         all_knobs=args.all_knobs, rank_sweep=args.rank_sweep,
     )  # fmt: skip
     args.out.mkdir(parents=True, exist_ok=True)
-    stem = args.out / "work_precision"
+    stem = args.out / "regimes"
     if args.merge and Path(f"{stem}.json").is_file():
         report = merge_reports(json.loads(Path(f"{stem}.json").read_text()), report)
     Path(f"{stem}.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
