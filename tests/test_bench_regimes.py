@@ -20,7 +20,7 @@ def test_quick_bench_runs_every_regime(tiny_system, tmp_path, capsys):
     out = tmp_path / "results"
     assert main(["bench", "--quick", "--system", str(system_json), "--methods", "admm",
                  "deconvolution", "--out", str(out)]) == 0
-    report = json.loads((out / "work_precision.json").read_text())
+    report = json.loads((out / "regimes.json").read_text())
     assert report["regimes"] == list(REGIMES)
     assert report["departures"]["matched"] is None
     assert report["departures"]["realistic"]["photons"] == 1000.0
@@ -28,14 +28,14 @@ def test_quick_bench_runs_every_regime(tiny_system, tmp_path, capsys):
         rows = [r for r in report["rows"] if r["regime"] == regime]
         assert {r["method"] for r in rows} == {"LSV-ADMM", "Wiener", "Richardson-Lucy"}
         assert all(np.isfinite(r["psnr"]) and r["seconds"] > 0 for r in rows)
-    text = (out / "work_precision.md").read_text()
+    text = (out / "regimes.md").read_text()
     assert f"## matched ({INVERSE_CRIME})" in text and "## PSNR (dB) per regime" in text
     assert "`photons` = 200.0" in text  # the low-light departures are listed
-    assert (out / "work_precision.png").stat().st_size > 0
+    assert (out / "regimes.png").stat().st_size > 0
     # rerunning one regime with --merge keeps the other regimes' rows
     assert main(["bench", "--quick", "--system", str(system_json), "--methods", "deconvolution",
                  "--regimes", "background", "--merge", "--out", str(out)]) == 0
-    merged = json.loads((out / "work_precision.json").read_text())
+    merged = json.loads((out / "regimes.json").read_text())
     assert len(merged["rows"]) == len(report["rows"])
     assert merged["regimes"] == list(REGIMES)
     assert "[realistic]" in capsys.readouterr().out

@@ -279,3 +279,21 @@ def test_instrument_reuses_the_operator_when_only_the_camera_changes(tiny):
     assert third.operator is not first.operator
     sim = Simulator(tiny, departures=optics)
     assert sim.with_departures(dataclasses.replace(optics, photons=50.0)).operator is sim.operator
+
+
+def test_pupil_offset_and_defocus_of_one_psf(tiny):
+    from svcode_core.optics import lens_psfs, system_psfs
+
+    base = lens_psfs(tiny, 4, [(0.0, 0.0)])[0]
+    np.testing.assert_array_equal(lens_psfs(tiny, 4, [(0.0, 0.0)], defocus=0.0)[0], base)
+    moved = lens_psfs(tiny, 4, [(0.0, 0.0)], offset=(0.4, -0.3))[0]
+    r0, c0, s0 = moments(base)
+    r1, c1, _ = moments(moved)
+    # a pupil phase moves the PSF exactly; only the light cut by the window (< 2 %) can
+    # pull the centroid, by at most 2 % of the 7-px half-window
+    assert (r1 - r0, c1 - c0) == pytest.approx((0.4, -0.3), abs=0.15)
+    assert moments(lens_psfs(tiny, 4, [(0.0, 0.0)], defocus=0.7)[0])[2] > s0
+    with pytest.raises(ValueError, match="defocus must be finite"):
+        lens_psfs(tiny, 4, defocus=math.nan)
+    with pytest.raises(ValueError, match="offsets must have shape"):
+        system_psfs(tiny, offsets=np.zeros((3, 2)))

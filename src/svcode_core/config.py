@@ -187,8 +187,25 @@ def _lattice(centre: tuple[float, float], pitch: float) -> tuple[tuple[float, fl
     )
 
 
+class JsonFile:
+    """``to_json`` and ``save`` for a configuration class that defines ``to_dict``."""
+
+    def to_dict(self) -> dict[str, Any]:  # pragma: no cover - defined by subclasses
+        raise NotImplementedError
+
+    def to_json(self) -> str:
+        """The configuration as an indented JSON string."""
+        return json.dumps(self.to_dict(), indent=2)
+
+    def save(self, path: str | Path) -> Path:
+        """Write the configuration as JSON to ``path`` and return the path."""
+        path = Path(path)
+        path.write_text(self.to_json() + "\n", encoding="utf-8")
+        return path
+
+
 @dataclass(frozen=True)
-class SystemConfig:
+class SystemConfig(JsonFile):
     """One CM² instrument: geometry, optics, low-rank order, noise and patches.
 
     Attributes
@@ -311,16 +328,6 @@ class SystemConfig:
         data["lens_axes"] = [list(p) for p in self.lens_axes]
         return data
 
-    def to_json(self) -> str:
-        """The configuration as an indented JSON string."""
-        return json.dumps(self.to_dict(), indent=2)
-
-    def save(self, path: str | Path) -> Path:
-        """Write the configuration as JSON to ``path`` and return the path."""
-        path = Path(path)
-        path.write_text(self.to_json() + "\n", encoding="utf-8")
-        return path
-
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> SystemConfig:
         """Build and validate a configuration from a dictionary (as written by ``to_dict``).
@@ -350,19 +357,12 @@ class SystemConfig:
     @classmethod
     def from_json(cls, text: str) -> SystemConfig:
         """Parse a JSON string; see :meth:`from_dict`."""
-        try:
-            data = json.loads(text)
-        except json.JSONDecodeError as err:
-            raise ConfigError(f"system: not valid JSON ({err})") from None
-        return cls.from_dict(data)
+        return cls.from_dict(parse_json(text, "system"))
 
     @classmethod
     def load(cls, path: str | Path) -> SystemConfig:
         """Read a configuration from a JSON file."""
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"system configuration not found: {path}")
-        return cls.from_json(path.read_text(encoding="utf-8"))
+        return cls.from_json(read_text(path, "system configuration"))
 
     # ----------------------------------------------------------------- presets
     @classmethod
@@ -382,6 +382,22 @@ class SystemConfig:
     def replace(self, **changes: Any) -> SystemConfig:
         """A validated copy with some fields changed."""
         return dataclasses.replace(self, **changes).validate()
+
+
+def parse_json(text: str, prefix: str) -> Any:
+    """``json.loads(text)``, a :class:`ConfigError` starting with ``prefix`` if invalid."""
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as err:
+        raise ConfigError(f"{prefix}: not valid JSON ({err})") from None
+
+
+def read_text(path: str | Path, what: str) -> str:
+    """The text of a configuration file; ``FileNotFoundError`` naming ``what`` if missing."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} not found: {path}")
+    return path.read_text(encoding="utf-8")
 
 
 def _as_tuple(value: Any) -> Any:

@@ -32,7 +32,15 @@ from typing import Any
 
 import numpy as np
 
-from .config import N_LENSES, ConfigError, SystemConfig
+from .config import (
+    N_LENSES,
+    ConfigError,
+    JsonFile,
+    SystemConfig,
+    _build,
+    parse_json,
+    read_text,
+)
 
 __all__ = [
     "NAMED_SETS",
@@ -103,7 +111,7 @@ def _integer(name: str, value: Any, low: int, high: int | None = None) -> None:
 
 
 @dataclass(frozen=True)
-class Departures:
+class Departures(JsonFile):
     """The true instrument, as departures from the nominal system (all zero: none).
 
     Attributes
@@ -405,51 +413,29 @@ class Departures:
 
     # ---------------------------------------------------------------- JSON
     def to_dict(self) -> dict[str, Any]:
-        """Plain-JSON dictionary of every field."""
+        """Plain-JSON dictionary of every field (``to_json`` and ``save`` write it)."""
         data = dataclasses.asdict(self)
         data["mla_shift_px"] = list(self.mla_shift_px)
         return data
 
-    def to_json(self) -> str:
-        """The departures as an indented JSON string."""
-        return json.dumps(self.to_dict(), indent=2)
-
-    def save(self, path: str | Path) -> Path:
-        """Write the departures as JSON to ``path`` and return the path."""
-        path = Path(path)
-        path.write_text(self.to_json() + "\n", encoding="utf-8")
-        return path
-
     @classmethod
     def from_dict(cls, data: Any) -> Departures:
         """Build and validate from a dictionary; unknown fields are errors naming them."""
-        if not isinstance(data, dict):
-            raise ConfigError(f"departures: expected a JSON object, got {type(data).__name__}")
-        names = [f.name for f in dataclasses.fields(cls)]
-        unknown = sorted(set(data) - set(names))
-        if unknown:
-            _fail(unknown[0], f"unknown field (known: {', '.join(names)})")
-        data = dict(data)
-        if isinstance(data.get("mla_shift_px"), list):
-            data["mla_shift_px"] = tuple(data["mla_shift_px"])
-        return cls(**data).validate()
+        departures = _build(cls, data, "departures")
+        if isinstance(departures.mla_shift_px, list):
+            departures = dataclasses.replace(departures,
+                                             mla_shift_px=tuple(departures.mla_shift_px))
+        return departures.validate()
 
     @classmethod
     def from_json(cls, text: str) -> Departures:
         """Parse a JSON string; see :meth:`from_dict`."""
-        try:
-            data = json.loads(text)
-        except json.JSONDecodeError as err:
-            raise ConfigError(f"departures: not valid JSON ({err})") from None
-        return cls.from_dict(data)
+        return cls.from_dict(parse_json(text, "departures"))
 
     @classmethod
     def load(cls, path: str | Path) -> Departures:
         """Read departures from a JSON file."""
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"departures file not found: {path}")
-        return cls.from_json(path.read_text(encoding="utf-8"))
+        return cls.from_json(read_text(path, "departures file"))
 
 
 #: The named sets, pixel values for an Airy radius of 2 px (docs/regimes.md explains them).

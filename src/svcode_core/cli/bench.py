@@ -36,9 +36,9 @@ Timing and memory
     under-report). Where the peak cannot be reset (not Linux) the column is empty.
 
 ``--quick`` runs two scenes (one synthetic, one held-out), ADMM (``K`` = 3) to 30
-iterations, one Wiener and one RL setting and SV-CoDe's default knob, in every regime: a
-few minutes on one core. ``--regimes`` runs a subset; ``--methods`` a subset of the method
-families.
+iterations, one Wiener and one RL setting and SV-CoDe's default knob (no footprint
+measurement), in every regime: a few minutes on one core. ``--regimes`` runs a subset,
+``--methods`` a subset of the method families.
 """
 
 from __future__ import annotations
@@ -282,6 +282,7 @@ def svcode_rows(
     scenes: list[Scene],
     all_knobs: bool | int = True,
     cache: dict | None = None,
+    footprint: bool = True,
 ) -> list[Row]:
     """SV-CoDe rows over stride, mask cache, precision and skipping (or the default only).
 
@@ -289,7 +290,8 @@ def svcode_rows(
     first ``n`` (default, then stride ``P/4``, cache off, bf16, skipping off).
 
     With ``cache`` (a dict kept across calls) each knob's reconstructor is built and warmed
-    up once and reused for the scenes of later regimes.
+    up once and reused for the scenes of later regimes. ``footprint`` measures the model's
+    size and memory at S and 2S (in a subprocess: slow) on the first row.
     """
     from ..reconstruct import DEFAULT_MASK_CACHE_BYTES, Reconstructor
 
@@ -319,8 +321,8 @@ def svcode_rows(
         label = ", ".join(f"{k} {v}" for k, v in knob.items())
         row = Row(method, label, knob, setup_seconds=setup)
         rows.append(_score_reconstructor(row, rec, scenes))
-        if fresh:
-            row.footprint = model_footprint(weights, system).to_dict() if knob is knobs[0] else None
+        if fresh and footprint and knob is knobs[0]:
+            row.footprint = model_footprint(weights, system).to_dict()
     return rows
 
 
@@ -423,9 +425,11 @@ def run_benchmark(
             new += deconvolution_rows(op, scenes, quick)
         if "svcode" in methods and weights is not None:
             knobs = (all_knobs or 2) if regime == "matched" and not quick else 1
-            new += svcode_rows(weights, system, scenes, all_knobs=knobs, cache=cache)
+            new += svcode_rows(weights, system, scenes, all_knobs=knobs, cache=cache,
+                               footprint=not quick)  # fmt: skip
         for path in ablations:
-            new += svcode_rows(path, system, scenes, all_knobs=False, cache=cache)
+            new += svcode_rows(path, system, scenes, all_knobs=False, cache=cache,
+                               footprint=not quick)  # fmt: skip
         if "learned" in methods:
             for path in learned:
                 new += learned_rows(path, system, scenes, cache=cache)
@@ -660,7 +664,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the benchmark and write ``work_precision.{json,md,png}`` to ``args.out``.
+    """Run the benchmark and write ``regimes.{json,md,png}`` to ``args.out``.
 
     The figure has one work–precision panel per regime.
     """
@@ -675,7 +679,7 @@ def run(args: argparse.Namespace) -> int:
         all_knobs=args.all_knobs, rank_sweep=args.rank_sweep,
     )  # fmt: skip
     args.out.mkdir(parents=True, exist_ok=True)
-    stem = args.out / "work_precision"
+    stem = args.out / "regimes"
     if args.merge and Path(f"{stem}.json").is_file():
         report = merge_reports(json.loads(Path(f"{stem}.json").read_text()), report)
     Path(f"{stem}.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
