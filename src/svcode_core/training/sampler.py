@@ -3,7 +3,8 @@ whole padded frames for the full-frame learned baselines (:class:`FrameDataset`)
 
 Every frame is cut into ``P × P`` patches at the configured stride (``P / 2`` in the
 presets, the last patch flush with the edge, :class:`~svcode_core.tiling.TileGrid`). A
-patch holds the nine noiseless view crops with sensor noise added on access, the nine
+patch holds the nine noiseless view crops with sensor noise added on access (the frame's
+own camera, :meth:`~.dataset.TrainingData.frame_sensor`, when the dataset has departures), the nine
 demixing targets, the object crop, and the crop's origin in sub-view pixels, which the
 network turns into global coordinates. No flips or rotations: the PSFs depend on the field
 position, so a flipped patch would not be a valid measurement at its coordinates.
@@ -25,7 +26,6 @@ import torch
 
 from ..config import SystemConfig
 from ..geometry import assemble_frame, crop_to_sensor, extract_sub_views, pad_sensor_frame
-from ..noise import apply_sensor_noise
 from ..tiling import TileGrid
 from .dataset import TrainingData
 
@@ -162,7 +162,7 @@ class PatchDataset(_NoisySamples):
         clean = torch.from_numpy(np.array(self.data.views[frame][(slice(None), *crop)]))
         if self.noise:
             inside = torch.from_numpy(self.sensor_mask[(slice(None), *crop)])
-            views = apply_sensor_noise(clean, self.system.noise, generator) * inside
+            views = self.data.frame_sensor(frame).read(clean, generator) * inside
         else:
             views = clean
         return {
@@ -201,7 +201,7 @@ class FrameDataset(_NoisySamples):
         padded = assemble_frame(torch.from_numpy(np.array(self.data.views[frame])), self.system)
         if self.noise:
             sensor = crop_to_sensor(padded, self.system)
-            sensor = apply_sensor_noise(sensor, self.system.noise, generator)
+            sensor = self.data.frame_sensor(frame).read(sensor, generator)
             padded = pad_sensor_frame(sensor, self.system)
         return {
             "frame": padded,
