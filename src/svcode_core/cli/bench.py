@@ -19,10 +19,11 @@ Rows (per regime)
       regime, also at 50 iterations with ``K`` = 1 and 6;
     * **Wiener** per view with balance 1e-3, 1e-2, 1e-1; **Richardson–Lucy** per view with
       10 and 30 iterations;
-    * **SV-CoDe** (only with ``--weights`` or a bundled model): tile stride ``P/2`` in
-      every regime and ``P/4`` in the matched one; with ``--all-knobs``, in the matched
-      regime, also mask cache off, bf16 and empty-tile skipping off (knobs that change
-      the time, not the estimate);
+    * **SV-CoDe** (only with ``--weights`` or a bundled model): the planned tiling
+      (:func:`~svcode_core.reconstruct.plan_tiles`) in every regime and, in the matched
+      one, the system's patch ``P`` at stride ``P/2`` and ``P/4``; with ``--all-knobs``,
+      in the matched regime, also batches of one, mask cache off, bf16 and empty-tile
+      skipping off (knobs that change the time, not the estimate);
     * learned baselines (``--learned``) and ablations (``--ablations``), one row each.
 
 Timing and memory
@@ -284,10 +285,11 @@ def svcode_rows(
     cache: dict | None = None,
     footprint: bool = True,
 ) -> list[Row]:
-    """SV-CoDe rows over stride, mask cache, precision and skipping (or the default only).
+    """SV-CoDe rows over tiling, mask cache, precision and skipping (or the default only).
 
     ``all_knobs``: ``True`` every knob, ``False`` the default only, an integer ``n`` the
-    first ``n`` (default, then stride ``P/4``, cache off, bf16, skipping off).
+    first ``n`` (default: the planned tiling; then the system's patch ``P`` at stride
+    ``P/2`` and ``P/4`` with batches of 8 and of 1, cache off, bf16, skipping off).
 
     With ``cache`` (a dict kept across calls) each knob's reconstructor is built and warmed
     up once and reused for the scenes of later regimes. ``footprint`` measures the model's
@@ -296,12 +298,16 @@ def svcode_rows(
     from ..reconstruct import DEFAULT_MASK_CACHE_BYTES, Reconstructor
 
     patch = system.patch_size
+    planned = {"tile": None, "stride": None, "batch": None, "cache": True,
+               "precision": "fp32", "skip": True}  # fmt: skip
     knobs = [
-        {"stride": patch // 2, "cache": True, "precision": "fp32", "skip": True},
-        {"stride": patch // 4, "cache": True, "precision": "fp32", "skip": True},
-        {"stride": patch // 2, "cache": False, "precision": "fp32", "skip": True},
-        {"stride": patch // 2, "cache": True, "precision": "bf16", "skip": True},
-        {"stride": patch // 2, "cache": True, "precision": "fp32", "skip": False},
+        planned,
+        {**planned, "tile": patch, "stride": patch // 2, "batch": 8},
+        {**planned, "tile": patch, "stride": patch // 4, "batch": 8},
+        {**planned, "tile": patch, "stride": patch // 2, "batch": 1},
+        {**planned, "cache": False},
+        {**planned, "precision": "bf16"},
+        {**planned, "skip": False},
     ]
     method = model_label(weights)
     rows = []
@@ -309,8 +315,8 @@ def svcode_rows(
     for knob in chosen:
         def build(knob: dict = knob) -> Any:
             rec = Reconstructor.from_weights(
-                weights, system, precision=knob["precision"], tile_size=patch,
-                stride=knob["stride"], skip_empty=knob["skip"],
+                weights, system, precision=knob["precision"], tile_size=knob["tile"],
+                stride=knob["stride"], batch_size=knob["batch"], skip_empty=knob["skip"],
                 mask_cache_bytes=DEFAULT_MASK_CACHE_BYTES if knob["cache"] else 0,
             )  # fmt: skip
             rec.reconstruct(scenes[0].raw)  # warm-up: fills the mask cache, as in a recording
@@ -318,7 +324,7 @@ def svcode_rows(
 
         key = ("svcode", str(weights), tuple(knob.items()))
         rec, setup, fresh = _cached(cache, key, build)
-        label = ", ".join(f"{k} {v}" for k, v in knob.items())
+        label = ", ".join(f"{k} {'planned' if v is None else v}" for k, v in knob.items())
         row = Row(method, label, knob, setup_seconds=setup)
         rows.append(_score_reconstructor(row, rec, scenes))
         if fresh and footprint and knob is knobs[0]:
@@ -424,7 +430,7 @@ def run_benchmark(
         if "deconvolution" in methods:
             new += deconvolution_rows(op, scenes, quick)
         if "svcode" in methods and weights is not None:
-            knobs = (all_knobs or 2) if regime == "matched" and not quick else 1
+            knobs = (all_knobs or 3) if regime == "matched" and not quick else 1
             new += svcode_rows(weights, system, scenes, all_knobs=knobs, cache=cache,
                                footprint=not quick)  # fmt: skip
         for path in ablations:
