@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import sys
 import time
 from pathlib import Path
 
@@ -28,22 +27,6 @@ from svcode_core.network import ModelConfig, SVCoDe, save_model  # noqa: E402
 from svcode_core.reconstruct import FrameProgress, Reconstructor  # noqa: E402
 
 pytestmark = pytest.mark.gui
-
-
-
-def _keep_none_alive() -> None:
-    """PySide6 6.12.0 on Python 3.11 drops a reference to ``None`` on every call of a Qt
-    method that returns nothing; after some ten thousand calls ``None`` is freed and the
-    process aborts ("none_dealloc"), at the latest when it exits. Until the binding is
-    fixed, give ``None`` references that are never returned (from Python 3.12 on it is
-    immortal and needs none)."""
-    if sys.version_info < (3, 12) and sys.implementation.name == "cpython":
-        import ctypes
-
-        ctypes.c_ssize_t.from_address(id(None)).value += 1 << 40
-
-
-_keep_none_alive()
 
 IMAGES = Path(__file__).resolve().parents[1] / "docs" / "images"
 COMPARE_ADMM_ITERATIONS = 10
