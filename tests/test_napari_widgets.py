@@ -295,8 +295,8 @@ def test_pickers_fit_their_role_and_tiling_defaults_come_from_the_core(make_napa
     assert widget._layer.value is viewer.layers["cells raw"]
     assert widget._truth.value is viewer.layers["cells ground truth"]
     defaults = reconstructor_defaults()
-    assert widget._panel.batch.value == defaults["batch_size"]
-    assert widget._panel.options()["batch_size"] == defaults["batch_size"]
+    assert widget._panel.batch.value == (defaults["batch_size"] or 0)
+    assert widget._panel.options().get("batch_size") == defaults["batch_size"]
     assert widget._panel.tile.value == (defaults["tile_size"] or 0)
     assert widget._panel.skip.value == defaults["skip_empty"]
     assert "admm" in widget._panel.method.choices

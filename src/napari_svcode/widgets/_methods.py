@@ -104,7 +104,8 @@ class MethodPanel(Container):
         self.precision = ComboBox(label="precision", choices=list(SVCODE_PRECISIONS))
         self.tile = SpinBox(label="tile size", min=0, max=8192,
                             value=defaults.get("tile_size") or 0,
-                            tooltip="tile side P in pixels; 0: the system's patch size")
+                            tooltip="tile side P in pixels; 0: planned by the core "
+                                    "(the whole sub-view when it fits in memory)")
         batch = defaults.get("batch_size")
         self.batch = SpinBox(label="batch size", min=0, max=1024,
                              value=batch if isinstance(batch, int) else 0,
