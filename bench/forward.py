@@ -512,7 +512,8 @@ def preset_table(result: dict) -> list[str]:
         worst = None if None in errors else max(errors)
         if "frame_ms" in row:
             frame = f"{row['frame_ms']:.0f} ({row['frame_ms_min']:.0f})"
-            peak = f"{_fmt(row['frame_peak_mib'], '.0f')} ({row['process_peak_mib']:.0f})"
+            peak = f"{_fmt(row.get('frame_peak_mib'), '.0f')} "
+            peak += f"({_fmt(row.get('process_peak_mib'), '.0f')})"
         else:
             frame, peak = f"skipped ({row['frame_skipped']})", "—"
         cells = [
@@ -539,6 +540,9 @@ def field_table(rows: list[dict]) -> list[str]:
         "|---" * 8 + "|",
     ]
     for row in rows:
+        if "padded" not in row:
+            lines.append("| not measured | | | | | | | |")
+            continue
         if "frame_ms" not in row:
             lines.append(f"| {row['size']}² | {row['padded'][0]}² | "
                          f"{row['memory_budget_mib']:.0f} | skipped | | | | |")
@@ -613,6 +617,7 @@ def markdown(report: dict) -> str:
         "`auto`: the smallest K per lens leaving out at most `rank_tolerance` of the PSF "
         "energy (the frame operator pads all lenses to the largest).",
         "",
+        *(f"**Note.** {note}\n" for note in report.get("notes", [])),
     ]
     for name, result in results.items():
         obj = result["object"]
@@ -643,7 +648,7 @@ def markdown(report: dict) -> str:
                 f"{auto['frame_ms_1thread_min']:.0f}).",
                 "",
             ]
-    field = report["field"]
+    field = report["field"] or [{"size": "—"}]
     lines += [
         "## Memory and time against the field size",
         "",
@@ -700,13 +705,13 @@ def targets(results: dict) -> list[str]:
                 f"{seconds:.3f} s (median) — {verdict}"
             )
     if "cm2-v2" in results:
-        frames = [row for row in results["cm2-v2"]["rows"] if "frame_ms" in row]
+        frames = [row for row in results["cm2-v2"]["rows"] if "process_peak_mib" in row]
         peak = max(row["process_peak_mib"] for row in frames) if frames else None
         verdict = "met" if len(frames) == len(results["cm2-v2"]["rows"]) and peak < 4096 else (
             "NOT met"
         )
         lines.append(
-            f"cm2-v2 full frames at every K, each process within 4 GiB resident: "
+            f"cm2-v2 full frames at every K measured, each process within 4 GiB resident: "
             f"{len(frames)} of {len(results['cm2-v2']['rows'])} orders, largest peak "
             f"{_fmt(peak, '.0f')} MiB — {verdict}"
         )
