@@ -50,6 +50,7 @@ __all__ = [
     "Calibration",
     "CalibrationError",
     "calibrate",
+    "fit_array",
     "read_positions",
     "report_text",
     "save_calibration",
@@ -270,8 +271,21 @@ def _find_spots(frames: np.ndarray, expected: np.ndarray, system: SystemConfig,
     return peaks
 
 
-def _fit_array(offsets: np.ndarray, system: SystemConfig) -> tuple[np.ndarray, float, np.ndarray]:
-    """Split lens offsets into array translation, small rotation and per-lens residuals."""
+def fit_array(offsets: np.ndarray, system: SystemConfig) -> tuple[np.ndarray, float, np.ndarray]:
+    """Split lens offsets into array translation, small rotation and per-lens residuals.
+
+    Parameters
+    ----------
+    offsets : numpy.ndarray
+        ``(9, 2)`` displacement ``(row, col)`` of each lens's image, pixels.
+    system : SystemConfig
+        Its chief rays fix the lattice centre the rotation turns about.
+
+    Returns
+    -------
+    (numpy.ndarray, float, numpy.ndarray)
+        Translation ``(2,)``, rotation in degrees, residuals ``(9, 2)`` (least squares).
+    """
     rays = np.asarray(system.chief_rays, float)
     relative = rays - rays.mean(axis=0)
     design = np.zeros((2 * N_LENSES, 3))
@@ -415,7 +429,7 @@ def calibrate(
         values = shift[use, lens]
         offsets[lens] = whole[lens] + values.mean(axis=0)
         errors[lens] = values.std(axis=0, ddof=1) / math.sqrt(len(values))
-    array_shift, rotation, residuals = _fit_array(offsets, system)
+    array_shift, rotation, residuals = fit_array(offsets, system)
     fitted = nominal_rays + offsets
     rays = np.rint(fitted).astype(np.int64)
     predicted = _image_points(system, fitted, positions) + _centroid(nominal)
