@@ -173,3 +173,16 @@ def test_calibrate_command_and_every_command_uses_the_system(scan, tmp_path, cap
     assert main(["dataset", "--system", calibrated_json, "--frames", "2", "--out",
                  str(data), "--no-progress"]) == 0
     assert SystemConfig.load(data / "system.json") == calibrated
+    from svcode_core.network import ModelConfig
+
+    model = tmp_path / "model.json"
+    model.write_text(ModelConfig(width=4, view_width=1, demix_enc_blocks=(1,),
+                                 demix_dec_blocks=(1,), recon_enc_blocks=(1,),
+                                 recon_dec_blocks=(1,), mlp_hidden=8, pe_bands=2).to_json())
+    assert main(["train", "--data", str(data), "--out", str(tmp_path / "run"), "--epochs", "1",
+                 "--model-config", str(model), "--batch-size", "2", "--patches-per-epoch", "2",
+                 "--val-patches", "1", "--device", "cpu", "--no-progress"]) == 0
+    bench = tmp_path / "bench"
+    assert main(["bench", "--quick", "--system", calibrated_json, "--methods", "deconvolution",
+                 "--regimes", "matched", "--out", str(bench)]) == 0
+    assert (bench / "work_precision.json").is_file()
