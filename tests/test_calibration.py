@@ -121,6 +121,10 @@ def test_bad_scans_name_the_frame(scan):
     bright[9] *= 10.0
     with pytest.raises(CalibrationError, match="frame 9: saturated spot"):
         calibrate(bright, positions, system, dark=dark)
+    counts = np.clip(frames * 4000, 0, 65535).astype(np.uint16)  # a 16-bit camera
+    counts[11, 30, 40] = 65535
+    with pytest.raises(CalibrationError, match=r"frame 11: saturated spot .* >= 65535"):
+        calibrate(counts, positions, system)
     with pytest.raises(CalibrationError, match="frame 0 is 60×79 px but system 'tiny' has a "
                        "60×80 sensor"):  # fmt: skip
         calibrate(frames[:, :, :79], positions, system, dark=dark)
@@ -182,6 +186,10 @@ def test_calibrate_command_and_every_command_uses_the_system(scan, tmp_path, cap
     assert main(["train", "--data", str(data), "--out", str(tmp_path / "run"), "--epochs", "1",
                  "--model-config", str(model), "--batch-size", "2", "--patches-per-epoch", "2",
                  "--val-patches", "1", "--device", "cpu", "--no-progress"]) == 0
+    # the network trained on the calibrated system reconstructs with it
+    assert main(["reconstruct", str(sim / "measurement.tif"), "--weights",
+                 str(tmp_path / "run" / "best.safetensors"), "--out",
+                 str(tmp_path / "svcode.tif"), "--quiet"]) == 0
     bench = tmp_path / "bench"
     assert main(["bench", "--quick", "--system", calibrated_json, "--methods", "deconvolution",
                  "--regimes", "matched", "--out", str(bench)]) == 0

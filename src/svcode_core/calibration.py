@@ -366,7 +366,8 @@ def calibrate(
     tolerance : float, optional
         Low-rank tolerance; default ``system.rank_tolerance``.
     saturation : float, optional
-        Reading at which a pixel is saturated; default ``system.noise.saturation``.
+        Reading at which a pixel is saturated; default the full scale of integer frames,
+        else ``system.noise.saturation``.
 
     Returns
     -------
@@ -379,9 +380,13 @@ def calibrate(
         or missing spots (naming the frame), or a scan that does not determine the PSF grid.
     """
     system = system.validate()
-    frames = np.asarray(frames, dtype=np.float64)
+    frames = np.asarray(frames)
+    if saturation is None:  # integer camera data saturate at the type's full scale
+        integer = np.issubdtype(frames.dtype, np.integer)
+        saturation = float(np.iinfo(frames.dtype).max) if integer else system.noise.saturation
+    frames = frames.astype(np.float64)
     positions = np.asarray(positions, dtype=np.int64).reshape(-1, 2)
-    saturation = system.noise.saturation if saturation is None else float(saturation)
+    saturation = float(saturation)
     _check_scan(frames, positions, system, saturation)
     tolerance = system.rank_tolerance if tolerance is None else float(tolerance)
     system = system.replace(rank=None, rank_tolerance=tolerance, psf_model=None)

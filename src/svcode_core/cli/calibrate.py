@@ -40,8 +40,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="low-rank tolerance: PSF energy fraction left out "
                         "(default: the system's rank_tolerance)")  # fmt: skip
     parser.add_argument("--saturation", type=float,
-                        help="reading at which a pixel saturates (default: the system's "
-                        "noise.saturation)")  # fmt: skip
+                        help="reading at which a pixel saturates (default: the full scale "
+                        "of integer frames, else the system's noise.saturation)")  # fmt: skip
     parser.set_defaults(func=run)
 
 
