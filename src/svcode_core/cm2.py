@@ -133,11 +133,12 @@ class CM2Operator:
         device: torch.device | str | None = None,
         memory_budget: int | None = None,
     ) -> CM2Operator:
-        """The operator of ``system`` with PSFs from its pupil model (:mod:`.optics`)."""
-        from .optics import system_psfs
+        """The operator of ``system``: PSFs from its ``psf_model`` stack if it names one
+        (a calibrated system), else from its pupil model (:func:`.psf_io.model_psfs`)."""
+        from .psf_io import model_psfs
 
         return cls.from_psfs(
-            system, system_psfs(system), rank, tolerance, dtype, device, memory_budget
+            system, model_psfs(system), rank, tolerance, dtype, device, memory_budget
         )
 
     # --------------------------------------------------------------- reports

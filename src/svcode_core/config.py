@@ -24,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -231,6 +232,11 @@ class SystemConfig(JsonFile):
         Training and inference tile size ``P`` and stride.
     optics : OpticsConfig
     noise : NoiseConfig
+    psf_model : str or None
+        A measured PSF stack (TIFF of :mod:`svcode_core.psf_io`, its positions JSON beside
+        it) that replaces the pupil model of ``optics``; ``None``: the pupil model. In a
+        JSON file the path is relative to the file; :meth:`load` makes it absolute and
+        :meth:`save` writes it relative to the new file.
     """
 
     name: str
@@ -245,6 +251,7 @@ class SystemConfig(JsonFile):
     patch_stride: int = 48
     optics: OpticsConfig = field(default_factory=OpticsConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
+    psf_model: str | None = None
 
     # ------------------------------------------------------------------ derived
     @property
@@ -316,6 +323,9 @@ class SystemConfig(JsonFile):
         if not isinstance(self.noise, NoiseConfig):
             _fail("noise", f"must be a NoiseConfig, got {type(self.noise).__name__}")
         self.noise.validate()
+        if self.psf_model is not None and (not isinstance(self.psf_model, str)
+                                           or not self.psf_model):  # fmt: skip
+            _fail("psf_model", f"must be a file path or null, got {self.psf_model!r}")
         return self
 
     # --------------------------------------------------------------- JSON I/O
@@ -326,7 +336,21 @@ class SystemConfig(JsonFile):
         data["padding"] = list(self.padding)
         data["chief_rays"] = [list(p) for p in self.chief_rays]
         data["lens_axes"] = [list(p) for p in self.lens_axes]
+        if self.psf_model is None:
+            del data["psf_model"]  # pupil-model systems keep their JSON unchanged
         return data
+
+    def save(self, path: str | Path) -> Path:
+        """Write the configuration as JSON to ``path`` and return the path.
+
+        An absolute ``psf_model`` is written relative to the folder of ``path``.
+        """
+        path = Path(path)
+        config = self
+        if self.psf_model is not None and Path(self.psf_model).is_absolute():
+            relative = os.path.relpath(self.psf_model, path.parent.resolve())
+            config = dataclasses.replace(self, psf_model=Path(relative).as_posix())
+        return JsonFile.save(config, path)
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> SystemConfig:
@@ -361,8 +385,14 @@ class SystemConfig(JsonFile):
 
     @classmethod
     def load(cls, path: str | Path) -> SystemConfig:
-        """Read a configuration from a JSON file."""
-        return cls.from_json(read_text(path, "system configuration"))
+        """Read a configuration from a JSON file; a relative ``psf_model`` is resolved
+        against the file's folder."""
+        path = Path(path)
+        config = cls.from_json(read_text(path, "system configuration"))
+        if config.psf_model is not None and not Path(config.psf_model).is_absolute():
+            model = (path.parent / config.psf_model).resolve()
+            config = dataclasses.replace(config, psf_model=str(model))
+        return config
 
     # ----------------------------------------------------------------- presets
     @classmethod

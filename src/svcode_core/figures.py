@@ -14,7 +14,7 @@ from matplotlib.patches import Rectangle  # noqa: E402
 from .config import SystemConfig  # noqa: E402
 from .geometry import sub_view_origins  # noqa: E402
 
-__all__ = ["montage", "overview_figure"]
+__all__ = ["calibration_figure", "montage", "overview_figure"]
 
 
 def montage(views: np.ndarray) -> np.ndarray:
@@ -80,5 +80,58 @@ def overview_figure(
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def calibration_figure(path: str | Path, calibration, frames: np.ndarray) -> Path:
+    """Save the fitted spots, their residuals and the PSF grid of a calibration.
+
+    Parameters
+    ----------
+    path : str or Path
+        PNG to write.
+    calibration : svcode_core.calibration.Calibration
+    frames : numpy.ndarray
+        The scan ``(N, H, W)``; its maximum over frames is the background of panel 1.
+    """
+    cal = calibration
+    fig, axes = plt.subplots(1, 3, figsize=(13.0, 4.4))
+    axes[0].imshow(np.asarray(frames).max(axis=0), cmap="gray")
+    measured = cal.centroids.reshape(-1, 2)
+    predicted = cal.predicted.reshape(-1, 2)
+    axes[0].plot(measured[:, 1], measured[:, 0], "o", mfc="none", mec="cyan", ms=4,
+                 label="measured spot")
+    axes[0].plot(predicted[:, 1], predicted[:, 0], "+", color="red", ms=4, label="fitted")
+    axes[0].legend(loc="lower right", fontsize=7)
+    axes[0].set_title("scan (max over frames), spots")
+    colours = plt.cm.tab10(np.arange(9) % 10)
+    residual = cal.centroids - cal.predicted
+    for lens in range(9):
+        axes[1].plot(residual[:, lens, 1], residual[:, lens, 0], ".", color=colours[lens],
+                     label=f"lens {lens}")
+    axes[1].axhline(0, color="grey", lw=0.5)
+    axes[1].axvline(0, color="grey", lw=0.5)
+    axes[1].set_aspect("equal")
+    axes[1].invert_yaxis()
+    axes[1].set_xlabel("col residual (px)")
+    axes[1].set_ylabel("row residual (px)")
+    axes[1].legend(fontsize=6, ncol=3)
+    axes[1].set_title("centroid residuals")
+    psfs = np.asarray(cal.psfs)
+    grid = int(round(np.sqrt(psfs.shape[1])))
+    k = psfs.shape[-1]
+    tiles = psfs.reshape(3, 3, grid, grid, k, k).transpose(0, 2, 4, 1, 3, 5)
+    axes[2].imshow(np.sqrt(tiles.reshape(3 * grid * k, 3 * grid * k)), cmap="magma")
+    for line in range(1, 3):
+        axes[2].axhline(line * grid * k - 0.5, color="white", lw=0.8)
+        axes[2].axvline(line * grid * k - 0.5, color="white", lw=0.8)
+    axes[2].set_xticks([])
+    axes[2].set_yticks([])
+    axes[2].set_title(f"PSF grid, lens-major (sqrt), K = {max(cal.ranks)}")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
     return path

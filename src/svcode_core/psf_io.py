@@ -6,6 +6,10 @@ lens-major: ``(9, G·G, k, k)`` or flattened ``(9·G·G, k, k)``. The object pos
 grid nodes travel in a JSON file ``{"positions": [[v, u], ...]}`` (or a two-column CSV)
 and must be those of :func:`svcode_core.optics.psf_grid_positions`. Measured PSFs keep
 their scale: the relative throughput across the field is part of the calibration.
+
+A system whose ``psf_model`` names such a stack (as ``svcode calibrate`` writes) is built
+from it everywhere: :func:`model_psfs` is what :meth:`CM2Operator.from_system
+<svcode_core.cm2.CM2Operator.from_system>` uses.
 """
 
 from __future__ import annotations
@@ -19,9 +23,9 @@ import numpy as np
 
 from .config import N_LENSES, SystemConfig
 from .io import read_tiff, write_json_atomic, write_tiff
-from .optics import psf_grid_positions
+from .optics import psf_grid_positions, system_psfs
 
-__all__ = ["load_measured_psfs", "positions_path", "save_psfs"]
+__all__ = ["load_measured_psfs", "model_psfs", "positions_path", "save_psfs"]
 
 #: Largest distance (normalised units) between a listed position and its grid node.
 POSITION_TOLERANCE = 1e-6
@@ -191,3 +195,26 @@ def save_psfs(path: str | Path, psfs: np.ndarray, config: SystemConfig) -> tuple
         {"positions": psf_grid_positions(config).tolist(), "psf_grid": grid, "lenses": N_LENSES},
     )
     return tiff, positions
+
+
+def model_psfs(config: SystemConfig) -> np.ndarray:
+    """The PSFs ``(9, G·G, k, k)`` of a system: its measured stack, else its pupil model.
+
+    Parameters
+    ----------
+    config : SystemConfig
+        With ``psf_model`` set, the stack it names is read with its positions JSON
+        (:func:`positions_path`) and checked by :func:`load_measured_psfs`; otherwise
+        :func:`~svcode_core.optics.system_psfs`.
+
+    Raises
+    ------
+    FileNotFoundError
+        If the measured stack or its positions file is missing (the message names it).
+    """
+    if config.psf_model is None:
+        return system_psfs(config)
+    stack = Path(config.psf_model)
+    if not stack.is_file():
+        raise FileNotFoundError(f"psf_model: measured PSF stack not found: {stack}")
+    return load_measured_psfs(stack, positions_path(stack), config)

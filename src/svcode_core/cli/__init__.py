@@ -20,7 +20,7 @@ from pathlib import Path
 
 from ..config import SystemConfig, available_presets, load_system
 
-COMMANDS = ("simulate", "reconstruct", "demo", "dataset", "train", "bench")
+COMMANDS = ("simulate", "reconstruct", "demo", "dataset", "train", "bench", "calibrate")
 
 
 def add_system_arguments(

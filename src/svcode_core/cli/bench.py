@@ -65,9 +65,9 @@ from ..footprint import PeakMemory, model_footprint
 from ..geometry import pad_sensor_frame
 from ..metrics import CENTRE_RADIUS, RING_RADIUS, image_quality
 from ..network import read_model_metadata
-from ..optics import system_psfs
 from ..phantoms import HELD_OUT_IMAGES, held_out_image, make_object
 from ..pretrained import bundled_weights
+from ..psf_io import model_psfs
 from ..simulate import Simulator
 
 SCENES = (
@@ -391,7 +391,7 @@ def run_benchmark(
             raise ValueError(f"unknown regime {regime!r}; choose from {', '.join(REGIMES)}")
     names = QUICK_SCENES if quick else tuple(s[0] for s in SCENES)
     start = time.perf_counter()
-    psfs = system_psfs(system)
+    psfs = model_psfs(system)
     nominal = Simulator(system, CM2Operator.from_psfs(system, psfs))
 
     def operator(rank: int) -> tuple[CM2Operator, float]:

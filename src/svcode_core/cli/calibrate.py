@@ -1,0 +1,69 @@
+"""``svcode calibrate``: a calibrated system from a point-source scan."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..calibration import calibrate, read_positions, save_calibration
+from ..io import read_tiff
+from . import add_system_arguments, chosen_system
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    """Register ``svcode calibrate``."""
+    parser = subparsers.add_parser(
+        "calibrate",
+        help="calibrate a system from a point-source scan",
+        description=(
+            "Fit the chief rays, the lens array's shift and rotation, the per-lens PSFs on "
+            "the system's PSF grid, the vignetting and the low-rank order from a scan of a "
+            "point source (one raw frame per position). Writes OUT/system.json with the PSF "
+            "stack it refers to (psfs.tif), calibration.json, report.txt and report.png; "
+            "give OUT/system.json to --system of every other command."
+        ),
+    )
+    parser.add_argument("scan", type=Path, metavar="SCAN.tif", help="N×H×W raw frames")
+    parser.add_argument("--positions", type=Path, required=True, metavar="POS.csv",
+                        help="header 'row,col', then the source position of each frame in "
+                        "whole pixels of the S×S object grid")  # fmt: skip
+    add_system_arguments(parser, default=None,
+                         preset_help="nominal system preset (sensor, grid, starting values)")
+    parser.add_argument("--out", type=Path, required=True, help="output folder")
+    parser.add_argument("--dark", type=Path, metavar="DARK.tif",
+                        help="dark frame or stack (averaged) to subtract; default: each "
+                        "frame's median")  # fmt: skip
+    parser.add_argument("--tolerance", type=float,
+                        help="low-rank tolerance: PSF energy fraction left out "
+                        "(default: the system's rank_tolerance)")  # fmt: skip
+    parser.add_argument("--saturation", type=float,
+                        help="reading at which a pixel saturates (default: the full scale "
+                        "of integer frames, else the system's noise.saturation)")  # fmt: skip
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Calibrate and write the files; print a summary."""
+    nominal = chosen_system(args)
+    if nominal is None:
+        raise ValueError("give the nominal system: --preset NAME or --system FILE.json")
+    frames, _, _ = read_tiff(args.scan)
+    frames = np.asarray(frames)
+    if frames.ndim == 2:
+        frames = frames[None]
+    positions = read_positions(args.positions)
+    dark = None if args.dark is None else np.asarray(read_tiff(args.dark)[0])
+    start = time.perf_counter()
+    calibration = calibrate(frames, positions, nominal, dark=dark, tolerance=args.tolerance,
+                            saturation=args.saturation)  # fmt: skip
+    files = save_calibration(calibration, args.out, nominal, frames)
+    seconds = time.perf_counter() - start
+    shift = calibration.array_shift
+    print(f"calibrated {nominal.name} from {len(frames)} frames in {seconds:.1f} s: array "
+          f"shift ({shift[0]:+.2f}, {shift[1]:+.2f}) px, rotation "
+          f"{calibration.array_rotation_deg:+.3f} deg, K = {max(calibration.ranks)} "
+          f"-> {files['system']}")
+    return 0

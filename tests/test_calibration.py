@@ -1,0 +1,196 @@
+"""``svcode calibrate``: a simulated bead scan of a departed instrument, calibrated back."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from svcode_core.calibration import CalibrationError, calibrate, read_positions
+from svcode_core.cli import main
+from svcode_core.cm2 import CM2Operator
+from svcode_core.config import SystemConfig
+from svcode_core.departures import Departures
+from svcode_core.instrument import departed_system
+from svcode_core.io import read_tiff, write_tiff
+from svcode_core.psf_io import load_measured_psfs, positions_path
+from svcode_core.scan import scan_grid, simulate_scan, with_dark_offset, write_positions
+from svcode_core.simulate import Simulator
+
+#: Larger than the ``calibration`` set (scaled to the tiny system's 1-px Airy radius it
+#: moves the lenses by a quarter pixel), so that the fit has something to find.
+DEPARTURES = Departures(name="test", mla_shift_px=(1.3, -0.7), mla_rotation_deg=0.4,
+                        lens_jitter_px=0.3, seed=3)
+#: Black level: 8 read-noise deviations, so the dark pixels are never clipped at zero.
+BLACK_LEVEL = 2e-3
+TOLERANCE = 1e-3
+
+
+@pytest.fixture(scope="module")
+def scan():
+    """A 7×7 bead scan of the tiny system through DEPARTURES, with its dark stack."""
+    from svcode_core.config import _system_from_scale
+
+    base = SystemConfig.preset("cm2-mini")
+    tiny = _system_from_scale(
+        "tiny", sensor_shape=(60, 80), sub_view_size=48, pitch=18, patch_size=16,
+        optics=base.optics.__class__(psf_grid=3, kernel_size=9, airy_radius=1.0,
+                                     pupil_samples=32, distortion=0.5),
+        rank_tolerance=1e-2,
+    )  # the conftest tiny system, module-scoped
+    system = with_dark_offset(tiny, BLACK_LEVEL)
+    simulator = Simulator(system, departures=DEPARTURES)
+    positions = scan_grid(system, 7)
+    frames, dark = simulate_scan(simulator, positions, seed=1)
+    # a tighter tolerance than the truth's own (1e-2): its PSFs are already of low rank
+    calibration = calibrate(frames, positions, system, dark=dark, tolerance=TOLERANCE)
+    return system, simulator, positions, frames, dark, calibration
+
+
+def _relative(a, b) -> float:
+    return float(np.linalg.norm(a - b) / np.linalg.norm(b))
+
+
+def test_chief_rays_within_a_quarter_pixel(scan):
+    system, _, _, _, _, calibration = scan
+    truth = DEPARTURES.lens_offsets(system)
+    error = np.abs(calibration.offsets - truth)
+    assert error.max() < 0.25, error
+    # the array motion is found too (per-lens jitter of 0.3 px limits the split)
+    np.testing.assert_allclose(calibration.array_shift, DEPARTURES.mla_shift_px, atol=0.2)
+    assert abs(calibration.array_rotation_deg - DEPARTURES.mla_rotation_deg) < 0.2
+    truth_system, _ = departed_system(system, DEPARTURES)
+    moved = np.abs(np.asarray(calibration.system.chief_rays) - truth_system.chief_rays)
+    assert moved.max() <= 1  # rounding may differ for an offset near a half pixel
+
+
+def test_psfs_and_frames_reproduce_the_departed_instrument(scan):
+    system, simulator, positions, frames, dark, calibration = scan
+    calibrated = CM2Operator.from_psfs(calibration.system, calibration.psfs,
+                                       dtype=torch.float64)
+    nominal = CM2Operator.from_system(system, dtype=torch.float64)
+    size = system.sub_view_size
+    beads = torch.zeros(len(positions), size, size, dtype=torch.float64)
+    beads[torch.arange(len(positions)), positions[:, 0], positions[:, 1]] = 1.0
+    clean, black = simulate_scan(simulator, positions, noise=False, dark_frames=1)
+    truth = clean - black  # the expected readings, less the camera's black level
+    # PSFs at every scanned position (the scan frames, noiseless): within 3 % (noiseless
+    # scan: 1.9 %, the rest is the scan's noise, 3 % of a frame's norm, fitted over 49)
+    psf_error = _relative(calibrated.measure(beads).numpy(), truth)
+    assert psf_error < 0.03
+    assert _relative(nominal.measure(beads).numpy(), truth) > 10 * psf_error
+    # an extended object the calibration never saw: within 3 %
+    from svcode_core.phantoms import make_object
+
+    obj = make_object("cells", size, 0)
+    frame = simulator.simulate(obj, noise=False).measurement - black[0]
+    x = torch.as_tensor(obj, dtype=torch.float64)
+    assert _relative(calibrated.measure(x).numpy(), frame) < 0.03
+    # grid PSFs of the lens whose whole field is on the sensor, against the truth's own
+    # (its pupil-model PSFs reduced to its low rank, which is what made the frames)
+    truth_grid = np.stack([np.einsum("kab,kij->abij", d.grid_weights, d.kernels).reshape(
+        -1, *d.kernels.shape[1:]) for d in simulator.operator.decompositions])
+    assert _relative(calibration.psfs[4], truth_grid[4]) < 0.03
+    assert calibration.brightness == pytest.approx(1.0, abs=0.02)
+
+
+def test_positions_csv(tmp_path):
+    path = write_positions(tmp_path / "pos.csv", np.array([[0, 1], [2, 3]]))
+    np.testing.assert_array_equal(read_positions(path), [[0, 1], [2, 3]])
+    path.write_text("row,col\n0,1\n2.5,3\n")
+    with pytest.raises(CalibrationError, match=r"line 3 \(frame 1\).*whole pixel"):
+        read_positions(path)
+    path.write_text("x,y\n0,1\n")
+    with pytest.raises(CalibrationError, match="header 'row,col'"):
+        read_positions(path)
+
+
+def test_bad_scans_name_the_frame(scan):
+    system, _, positions, frames, dark, _ = scan
+    with pytest.raises(CalibrationError, match="49 frames but the positions list 48: frame 48"):
+        calibrate(frames, positions[:-1], system, dark=dark)
+    outside = positions.copy()
+    outside[5] = (3, 48)
+    with pytest.raises(CalibrationError, match=r"frame 5: position \(3, 48\) lies outside"):
+        calibrate(frames, outside, system, dark=dark)
+    empty = frames.copy()
+    empty[7] = dark[0]
+    with pytest.raises(CalibrationError, match="frame 7: no spot above the detection threshold"):
+        calibrate(empty, positions, system, dark=dark)
+    bright = frames.copy()
+    bright[9] *= 10.0
+    with pytest.raises(CalibrationError, match="frame 9: saturated spot"):
+        calibrate(bright, positions, system, dark=dark)
+    counts = np.clip(frames * 4000, 0, 65535).astype(np.uint16)  # a 16-bit camera
+    counts[11, 30, 40] = 65535
+    with pytest.raises(CalibrationError, match=r"frame 11: saturated spot .* >= 65535"):
+        calibrate(counts, positions, system)
+    with pytest.raises(CalibrationError, match="frame 0 is 60×79 px but system 'tiny' has a "
+                       "60×80 sensor"):  # fmt: skip
+        calibrate(frames[:, :, :79], positions, system, dark=dark)
+
+
+def test_calibrate_command_and_every_command_uses_the_system(scan, tmp_path, capsys):
+    system, _, positions, frames, dark, _ = scan
+    nominal = system.save(tmp_path / "nominal.json")
+    write_tiff(tmp_path / "scan.tif", frames, system, kind="scan")
+    write_tiff(tmp_path / "dark.tif", dark, system, kind="dark")
+    write_positions(tmp_path / "pos.csv", positions)
+    out = tmp_path / "cal"
+    assert main(["calibrate", str(tmp_path / "scan.tif"), "--positions",
+                 str(tmp_path / "pos.csv"), "--system", str(nominal), "--dark",
+                 str(tmp_path / "dark.tif"), "--out", str(out)]) == 0
+    assert "calibrated tiny from 49 frames" in capsys.readouterr().out
+    for name in ("system.json", "psfs.tif", "psfs.positions.json", "calibration.json",
+                 "report.txt", "report.png"):
+        assert (out / name).is_file(), name
+    assert '"psf_model": "psfs.tif"' in (out / "system.json").read_text()
+    assert "lens array: shift" in (out / "report.txt").read_text()
+    # the folder moves as a whole: the PSF path is relative to the JSON
+    moved = tmp_path / "elsewhere"
+    (out).rename(moved)
+    calibrated = SystemConfig.load(moved / "system.json")
+    assert calibrated.psf_model == str((moved / "psfs.tif").resolve())
+    stack = load_measured_psfs(moved / "psfs.tif", positions_path(moved / "psfs.tif"), calibrated)
+    operator = CM2Operator.from_system(calibrated, dtype=torch.float64)
+    reference = CM2Operator.from_psfs(calibrated, stack, dtype=torch.float64)
+    x = torch.rand(48, 48, dtype=torch.float64)
+    torch.testing.assert_close(operator.forward(x), reference.forward(x))
+    calibrated_json = str(moved / "system.json")
+
+    sim = tmp_path / "sim"
+    assert main(["simulate", "--system", calibrated_json, "--object", "beads", "--out",
+                 str(sim)]) == 0
+    _, recorded, _ = read_tiff(sim / "measurement.tif")
+    assert recorded.psf_model == calibrated.psf_model
+    assert SystemConfig.load(sim / "system.json") == calibrated
+    for method in ("admm", "wiener", "rl"):
+        args = ["reconstruct", str(sim / "measurement.tif"), "--method", method,
+                "--out", str(tmp_path / f"{method}.tif"), "--quiet"]
+        if method != "wiener":
+            args += ["--iterations", "3"]
+        assert main(args) == 0, method  # system from the TIFF: the calibrated one
+    assert main(["reconstruct", str(sim / "measurement.tif"), "--system", calibrated_json,
+                 "--method", "admm", "--iterations", "2", "--out",
+                 str(tmp_path / "admm2.tif"), "--quiet"]) == 0
+    data = tmp_path / "data"
+    assert main(["dataset", "--system", calibrated_json, "--frames", "2", "--out",
+                 str(data), "--no-progress"]) == 0
+    assert SystemConfig.load(data / "system.json") == calibrated
+    from svcode_core.network import ModelConfig
+
+    model = tmp_path / "model.json"
+    model.write_text(ModelConfig(width=4, view_width=1, demix_enc_blocks=(1,),
+                                 demix_dec_blocks=(1,), recon_enc_blocks=(1,),
+                                 recon_dec_blocks=(1,), mlp_hidden=8, pe_bands=2).to_json())
+    assert main(["train", "--data", str(data), "--out", str(tmp_path / "run"), "--epochs", "1",
+                 "--model-config", str(model), "--batch-size", "2", "--patches-per-epoch", "2",
+                 "--val-patches", "1", "--device", "cpu", "--no-progress"]) == 0
+    # the network trained on the calibrated system reconstructs with it
+    assert main(["reconstruct", str(sim / "measurement.tif"), "--weights",
+                 str(tmp_path / "run" / "best.safetensors"), "--out",
+                 str(tmp_path / "svcode.tif"), "--quiet"]) == 0
+    bench = tmp_path / "bench"
+    assert main(["bench", "--quick", "--system", calibrated_json, "--methods", "deconvolution",
+                 "--regimes", "matched", "--out", str(bench)]) == 0
+    assert (bench / "work_precision.json").is_file()
