@@ -193,4 +193,4 @@ def test_calibrate_command_and_every_command_uses_the_system(scan, tmp_path, cap
     bench = tmp_path / "bench"
     assert main(["bench", "--quick", "--system", calibrated_json, "--methods", "deconvolution",
                  "--regimes", "matched", "--out", str(bench)]) == 0
-    assert (bench / "work_precision.json").is_file()
+    assert (bench / "regimes.json").is_file()
