@@ -111,3 +111,26 @@ def test_reconstruct_register_option_records_the_moved_system(drifted, tmp_path,
     _, recorded, meta = read_tiff(out)
     assert recorded == moved
     assert json.dumps(meta).count("lens_offsets_px") == 1
+
+
+def test_a_registration_no_rigid_array_explains_is_not_applied(drifted, tmp_path, monkeypatch,
+                                                               capsys):
+    import tifffile
+
+    import svcode_core.baselines.self_registration as module
+    from svcode_core.cli import main
+    from svcode_core.registration import Registration
+
+    system, frame = drifted
+    residuals = np.zeros((9, 2))
+    residuals[3] = (0.0, 1.8)
+    found = Registration(residuals.copy(), np.zeros(2), 0.0, residuals, 4)
+    monkeypatch.setattr(module, "self_register", lambda *a, **k: (found, system, None))
+    with pytest.raises(module.RegistrationRejected, match="lens 3 would move 1.8 px"):
+        register_recording(frame[None], system, tmp_path / "reg")
+    assert not (tmp_path / "reg").exists()
+    system.save(tmp_path / "system.json")
+    tifffile.imwrite(tmp_path / "meas.tif", frame)
+    assert main(["reconstruct", str(tmp_path / "meas.tif"), "--method", "wiener", "--register",
+                 "--out", str(tmp_path / "out.tif"), "--quiet"]) == 0
+    assert "warning: self-registration not applied: lens 3" in capsys.readouterr().out

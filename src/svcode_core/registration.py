@@ -84,11 +84,12 @@ def _lens_frames(operator: CM2Operator, estimate: np.ndarray) -> np.ndarray:
     return torch.stack(frames).double().numpy()
 
 
-def _fit_moves(frame: np.ndarray, lens_frames: np.ndarray) -> np.ndarray:
+def _fit_moves(frame: np.ndarray, lens_frames: np.ndarray, limit: float) -> np.ndarray:
     """``(9, 2)`` moves ``d`` with ``frame ≈ a · Σ_ℓ shift(lens_frames[ℓ], d_ℓ) + b``.
 
-    Gauss–Newton (:func:`scipy.optimize.least_squares`) over every sensor pixel, the
-    derivative of a shifted image being minus its gradient.
+    Bounded least squares (:func:`scipy.optimize.least_squares`, ``|d| ≤ limit`` per
+    axis) over every sensor pixel, the derivative of a shifted image being minus its
+    gradient.
     """
 
     def render(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -111,7 +112,9 @@ def _fit_moves(frame: np.ndarray, lens_frames: np.ndarray) -> np.ndarray:
     total = lens_frames.sum(axis=0)
     gain = float((frame * total).sum() / max((total * total).sum(), 1e-30))
     start = np.concatenate([[gain, 0.0], np.zeros(2 * N_LENSES)])
-    fit = least_squares(residual, start, jac=jacobian, x_scale="jac")
+    bound = np.full(2 * N_LENSES, float(limit))
+    fit = least_squares(residual, start, jac=jacobian, x_scale="jac",
+                        bounds=(np.r_[-np.inf, -np.inf, -bound], np.r_[np.inf, np.inf, bound]))
     return fit.x[2:].reshape(N_LENSES, 2)
 
 
@@ -121,6 +124,7 @@ def register_views(
     estimate: np.ndarray,
     operator: CM2Operator | None = None,
     reference: int = 4,
+    limit: float = 1.0,
 ) -> Registration:
     """Lens offsets of ``frame`` against the frame ``operator`` predicts for ``estimate``.
 
@@ -140,6 +144,9 @@ def register_views(
         Forward model of ``system`` (default :meth:`CM2Operator.from_system`).
     reference : int
         Lens whose offset is 0 (default the centre lens, which sees the whole field).
+    limit : float
+        Largest move of a lens image along each axis, pixels (a trust region: an estimate
+        made with misregistered lenses holds ghosts that a free fit may lock onto).
 
     Returns
     -------
@@ -157,7 +164,7 @@ def register_views(
         raise ValueError(f"estimate must be {size}×{size}, got {estimate.shape}")
     if operator is None:
         operator = CM2Operator.from_system(system, dtype=torch.float64)
-    moves = _fit_moves(frame, _lens_frames(operator, estimate))
+    moves = _fit_moves(frame, _lens_frames(operator, estimate), limit)
     offsets = moves - moves[reference]
     shift, rotation, residuals = fit_array(offsets, system)
     return Registration(offsets, shift, rotation, residuals, reference)

@@ -21,13 +21,28 @@ from ..config import N_LENSES, SystemConfig
 from ..registration import Registration, register_views, registered_system
 from . import BaselineReconstructor
 
-__all__ = ["REGISTRATION_FRAMES", "SELF_REGISTRATION_ROUNDS", "register_recording", "self_register"]
+__all__ = [
+    "MAX_LENS_RESIDUAL_PX",
+    "REGISTRATION_FRAMES",
+    "SELF_REGISTRATION_ROUNDS",
+    "RegistrationRejected",
+    "register_recording",
+    "self_register",
+]
 
 #: rounds of reconstruct → register → rebuild (the third moves offsets by < 0.05 px on
 #: ``cm2-mini``, ``bench/results/calibration.md``)
 SELF_REGISTRATION_ROUNDS = 3
 #: a recording is registered on the mean of its first frames (more signal, same drift)
 REGISTRATION_FRAMES = 8
+#: a lens further than this from the array's fitted translation and rotation means the
+#: registration locked onto the object's own structure (seen on a dense cell scene), not
+#: a drift: it is then not applied
+MAX_LENS_RESIDUAL_PX = 1.0
+
+
+class RegistrationRejected(ValueError):
+    """Self-registration found offsets no rigid lens array explains; nothing was moved."""
 
 
 def self_register(
@@ -104,12 +119,25 @@ def register_recording(
     -------
     (SystemConfig, Registration)
         The moved system (as written) and the offsets found.
+
+    Raises
+    ------
+    RegistrationRejected
+        If a lens sits more than :data:`MAX_LENS_RESIDUAL_PX` from the array fit (the
+        message names it); nothing is written.
     """
     from ..io import write_json_atomic
     from ..psf_io import save_psfs
 
     frame = np.mean(np.asarray(frames[:REGISTRATION_FRAMES], dtype=np.float64), axis=0)
     registration, moved, psfs = self_register(frame, system)
+    misfit = np.linalg.norm(registration.residuals, axis=1)
+    if misfit.max() > MAX_LENS_RESIDUAL_PX:
+        lens = int(misfit.argmax())
+        raise RegistrationRejected(
+            f"self-registration not applied: lens {lens} would move {misfit[lens]:.1f} px "
+            f"away from the rest of the array (at most {MAX_LENS_RESIDUAL_PX} px is a "
+            "drift); the scene's own structure misled it, recalibrate with a bead scan")
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     psf_file, _ = save_psfs(folder / "psfs.tif", psfs, moved)

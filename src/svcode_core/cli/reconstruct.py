@@ -115,13 +115,21 @@ def _system(args: argparse.Namespace):
 
 def _register(args: argparse.Namespace, system) -> tuple[object, dict]:
     """The system moved by self-registration of the input, written beside ``--out``."""
-    from ..baselines.self_registration import REGISTRATION_FRAMES, register_recording
+    from ..baselines.self_registration import (
+        REGISTRATION_FRAMES,
+        RegistrationRejected,
+        register_recording,
+    )
 
     with FrameReader(args.input) as reader:
         frames = [finite_frame(reader[i], i, scale=args.input_scale)
                   for i in range(min(len(reader), REGISTRATION_FRAMES))]  # fmt: skip
     folder = args.out.with_name(args.out.stem + ".registered")
-    moved, registration = register_recording(frames, system, folder)
+    try:
+        moved, registration = register_recording(frames, system, folder)
+    except RegistrationRejected as err:
+        print(f"warning: {err}; reconstructing with the given system")
+        return system, {"registration": {"rejected": str(err)}}
     print(f"registered: lens offsets up to {abs(registration.offsets).max():.2f} px, array "
           f"shift {registration.shift.round(2).tolist()} px, rotation "
           f"{registration.rotation_deg:.3f}°; moved system in {folder}")
