@@ -287,7 +287,7 @@ def test_calibrate_from_a_scan_file_draws_the_fitted_rays_and_saves(
     assert (tmp_path / "cal" / "report.txt").read_text() == widget._report.value
 
 
-def test_calibrate_a_scan_layer_without_a_raw_frame_and_cancel(qtbot, scan_files,
+def test_calibrate_a_scan_layer_without_a_raw_frame_and_cancel(qtbot, tmp_path, scan_files,
                                                                make_napari_viewer, errors):
     viewer = make_napari_viewer()
     [scan] = viewer.open(scan_files["scan"], plugin="napari-svcode")
@@ -306,6 +306,18 @@ def test_calibrate_a_scan_layer_without_a_raw_frame_and_cancel(qtbot, scan_files
     assert scan.metadata[SYSTEM_KEY] == widget.calibration.system  # the scan itself
     assert "chief rays" in viewer.layers and "spots" in viewer.layers
     assert viewer.dims.current_step[0] == 12  # the frame whose spots are shown
+
+    calibrated = widget.calibration  # a cancelled second run keeps the first calibration
+    widget._system_choice.source.value = widget._system_choice.FROM_FILE
+    widget._system_choice.path.value = scan_files["system"].replace(name="other").save(
+        tmp_path / "other.json")
+    assert widget.start_calibration() is not None
+    widget.cancel()
+    qtbot.waitUntil(lambda: widget._calibrate.enabled, timeout=60_000)
+    assert widget.calibration is calibrated
+    widget._folder.value = tmp_path / "cal"
+    assert widget.save_calibration() is not None and not errors
+    assert "calibration of 'tiny'" in (tmp_path / "cal" / "report.txt").read_text()
 
 
 def test_calibration_errors_are_one_notification_each(qtbot, tmp_path, scan_files,

@@ -167,6 +167,7 @@ class CalibrationWidget(Container):
         self._relay.progress.connect(self._on_progress, Qt.ConnectionType.QueuedConnection)
         self.system: SystemConfig | None = None
         self.calibration: Calibration | None = None
+        self._calibrated_from: dict[str, Any] = {}  # the nominal system and the frames
         self.worker: FunctionWorker | None = None
         self._raw: napari.layers.Image | None = None
         self._updating = False
@@ -424,6 +425,7 @@ class CalibrationWidget(Container):
         """Apply the calibrated system, draw its chief rays and spots, show the report."""
         run = self._run
         self.calibration = calibration
+        self._calibrated_from = {"nominal": run["nominal"], "frames": run["frames"]}
         self._raw = self._target_layer(run)
         self._apply(calibration.system)
         self._draw()
@@ -492,8 +494,8 @@ class CalibrationWidget(Container):
             return None
         folder = Path(self._folder.value)
         try:
-            files = save_calibration(calibration, folder, self._run["nominal"],
-                                     self._run["frames"])
+            files = save_calibration(calibration, folder, self._calibrated_from["nominal"],
+                                     self._calibrated_from["frames"])
         except OSError as err:
             notify_error(err, "choose a folder you can write to")
             return None
