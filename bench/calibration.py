@@ -10,7 +10,7 @@ the system's automatic rank) from one noisy frame of the same departed instrumen
 * the nominal preset's operator.
 
 It also records the chief-ray error of the calibration against the departures and, for
-chief-ray self-registration (:func:`svcode_core.registration.register_frame`), the error of
+chief-ray self-registration (:func:`svcode_core.physics.registration.register_frame`), the error of
 the lens offsets (relative to the centre lens) it estimates from each held-out frame,
 beside the error of assuming no drift.
 
@@ -30,16 +30,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from svcode_core.baselines import reconstruct_with_baseline
-from svcode_core.calibration import calibrate
-from svcode_core.cm2 import CM2Operator
 from svcode_core.config import SystemConfig
-from svcode_core.departures import Departures
-from svcode_core.metrics import psnr
+from svcode_core.evaluation.metrics import psnr
+from svcode_core.methods.baselines import reconstruct_with_baseline
 from svcode_core.phantoms import HELD_OUT_IMAGES, held_out_image
-from svcode_core.registration import register_frame
-from svcode_core.scan import scan_grid, simulate_scan, with_dark_offset
-from svcode_core.simulate import Simulator
+from svcode_core.physics.calibration import calibrate
+from svcode_core.physics.cm2 import CM2Operator
+from svcode_core.physics.departures import Departures
+from svcode_core.physics.registration import register_frame
+from svcode_core.physics.scan import scan_grid, simulate_scan, with_dark_offset
+from svcode_core.physics.simulate import Simulator
 
 RESULTS = Path(__file__).with_name("results")
 

@@ -30,6 +30,9 @@ from pathlib import Path
 from typing import Any
 
 N_LENSES = 9
+#: one GiB: the default working-memory budget of the forward model, the tiling and the
+#: coordinate-mask cache
+DEFAULT_MEMORY_BUDGET = 1 << 30
 
 __all__ = [
     "N_LENSES",
@@ -39,6 +42,7 @@ __all__ = [
     "SystemConfig",
     "available_presets",
     "load_system",
+    "system_from_scale",
 ]
 
 
@@ -233,7 +237,7 @@ class SystemConfig(JsonFile):
     optics : OpticsConfig
     noise : NoiseConfig
     psf_model : str or None
-        A measured PSF stack (TIFF of :mod:`svcode_core.psf_io`, its positions JSON beside
+        A measured PSF stack (TIFF of :mod:`svcode_core.physics.psf_io`, its positions JSON beside
         it) that replaces the pupil model of ``optics``; ``None``: the pupil model. In a
         JSON file the path is relative to the file; :meth:`load` makes it absolute and
         :meth:`save` writes it relative to the new file.
@@ -453,7 +457,7 @@ def _build(klass: type, data: Any, prefix: str) -> Any:
         raise ConfigError(f"{prefix}: {err}") from None
 
 
-def _system_from_scale(
+def system_from_scale(
     name: str,
     sensor_shape: tuple[int, int],
     sub_view_size: int,
@@ -462,9 +466,17 @@ def _system_from_scale(
     optics: OpticsConfig,
     rank_tolerance: float,
 ) -> SystemConfig:
-    """A system whose ideal lens lattice is centred in the padded frame.
+    """A system whose ideal lens lattice is centred in the padded frame (how the presets
+    are made; also for small test systems).
 
     The padded frame is ``S + 2·pitch`` square, so the nine sub-views tile it exactly.
+
+    Examples
+    --------
+    >>> optics = OpticsConfig(psf_grid=3, kernel_size=9, airy_radius=1.0, pupil_samples=32)
+    >>> tiny = system_from_scale("tiny", (60, 80), 48, 18, 16, optics, 1e-2).validate()
+    >>> tiny.padded_shape, tiny.chief_rays[4]
+    ((84, 84), (42, 42))
     """
     side = sub_view_size + 2 * pitch
     padding = ((side - sensor_shape[0]) // 2, (side - sensor_shape[1]) // 2)
@@ -490,7 +502,7 @@ def _system_from_scale(
 
 def _cm2_v2() -> SystemConfig:
     """Paper scale: padded 4200², sub-views 2400², lens pitch 900 px, patches 480/240."""
-    return _system_from_scale(
+    return system_from_scale(
         "cm2-v2",
         sensor_shape=(3000, 4000),
         sub_view_size=2400,
@@ -504,7 +516,7 @@ def _cm2_v2() -> SystemConfig:
 
 def _cm2_mini() -> SystemConfig:
     """CPU scale (0.16 × paper): padded 672², sub-views 384², pitch 144 px, patches 96/48."""
-    return _system_from_scale(
+    return system_from_scale(
         "cm2-mini",
         sensor_shape=(480, 640),
         sub_view_size=384,

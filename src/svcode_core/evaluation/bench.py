@@ -1,6 +1,6 @@
-"""``svcode bench``: work–precision benchmark of every method and knob in every regime.
+"""Work–precision benchmark of every method and knob in every regime (``svcode bench``).
 
-A *regime* is the instrument the test frames come from (:mod:`svcode_core.departures`):
+A *regime* is the instrument the test frames come from (:mod:`svcode_core.physics.departures`):
 ``matched`` is the nominal system itself, i.e. the data are simulated with the very
 forward model the model-based solvers invert (the inverse crime); ``calibration``,
 ``model``, ``background``, ``low-light`` and ``realistic`` are the named sets of
@@ -11,7 +11,7 @@ fixed object seeds) and the held-out real images of
 :data:`svcode_core.phantoms.HELD_OUT_IMAGES` (never used for training), each imaged with a
 fixed noise seed. Every method and knob reconstructs every scene of every regime; each
 row reports the scene-mean PSNR, SSIM, centre and outer-ring PSNR
-(:mod:`svcode_core.metrics`, ``data_range = 1``), seconds per frame and peak memory.
+(:mod:`svcode_core.evaluation.metrics`, ``data_range = 1``), seconds per frame and peak memory.
 
 Rows (per regime)
     * **LSV-ADMM**, ``K`` = 3: one run per scene, read out at 10, 20 and 50 iterations
@@ -20,7 +20,7 @@ Rows (per regime)
     * **Wiener** per view with balance 1e-3, 1e-2, 1e-1; **Richardson–Lucy** per view with
       10 and 30 iterations;
     * **SV-CoDe** (only with ``--weights`` or a bundled model): the planned tiling
-      (:func:`~svcode_core.reconstruct.plan_tiles`) in every regime and, in the matched
+      (:func:`~svcode_core.methods.svcode.plan_tiles`) in every regime and, in the matched
       one, the system's patch ``P`` at stride ``P/2`` and ``P/4``; with ``--all-knobs``,
       in the matched regime, also batches of one, mask cache off, bf16 and empty-tile
       skipping off (knobs that change the time, not the estimate);
@@ -44,7 +44,6 @@ measurement), in every regime: a few minutes on one core. ``--regimes`` runs a s
 
 from __future__ import annotations
 
-import argparse
 import json
 import platform
 import time
@@ -56,19 +55,21 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..baselines import LsvAdmm, ShiftInvariantDeconvolution
-from ..baselines.admm import settings_for
-from ..cm2 import CM2Operator
-from ..config import SystemConfig, load_system
-from ..departures import Departures
-from ..footprint import PeakMemory, model_footprint
-from ..geometry import pad_sensor_frame
-from ..metrics import CENTRE_RADIUS, RING_RADIUS, image_quality
-from ..network import read_model_metadata
+from ..config import SystemConfig
+from ..methods import registry
+from ..methods.baselines import LsvAdmm
+from ..methods.baselines.admm import settings_for
+from ..methods.build import build_reconstructor
+from ..methods.model_file import read_model_metadata
 from ..phantoms import HELD_OUT_IMAGES, held_out_image, make_object
+from ..physics.cm2 import CM2Operator
+from ..physics.departures import Departures
+from ..physics.geometry import pad_sensor_frame
+from ..physics.psf_io import model_psfs
+from ..physics.simulate import Simulator
 from ..pretrained import bundled_weights
-from ..psf_io import model_psfs
-from ..simulate import Simulator
+from .footprint import PeakMemory, model_footprint
+from .metrics import CENTRE_RADIUS, RING_RADIUS, image_quality
 
 SCENES = (
     ("cells", "cells", {}),
@@ -98,7 +99,6 @@ WIENER_BALANCES = (1e-3, 1e-2, 1e-1)
 RL_ITERATIONS = (10, 30)
 METRICS = ("psnr", "ssim", "psnr_centre", "psnr_ring")
 METHOD_FAMILIES = ("admm", "deconvolution", "svcode", "learned")
-LEARNED_LABELS = {"MultiWienerNet": "MultiWienerNet", "SVFourierNet": "SV-FourierNet"}
 
 
 @dataclass
@@ -205,7 +205,7 @@ def admm_rows(
     setup_seconds += time.perf_counter() - start
     rows = {
         n: Row(
-            "LSV-ADMM",
+            registry.method("admm").label,
             f"{label}, {n} it",
             {"rank": operator.rank, "iterations": n, "tv_weight": settings.tv_weight},
             setup_seconds=setup_seconds,
@@ -231,18 +231,11 @@ def deconvolution_rows(operator: CM2Operator, scenes: list[Scene], quick: bool) 
     knobs += [("rl", "iterations", n) for n in (RL_ITERATIONS[1:2] if quick else RL_ITERATIONS)]
     for method, name, value in knobs:
         start = time.perf_counter()
-        deconv = ShiftInvariantDeconvolution(operator, method, **{name: value})
+        rec = build_reconstructor(method, operator.system, operator=operator, **{name: value})
         setup = time.perf_counter() - start
-        label = "Wiener" if method == "wiener" else "Richardson-Lucy"
-        row = Row(label, f"{name} {value:g}", {name: value}, setup_seconds=setup)
-        with PeakMemory() as memory:
-            for scene in scenes:
-                frame = _padded(scene, operator)
-                start = time.perf_counter()
-                estimate = deconv(frame).numpy()
-                _score(row, scene, estimate, time.perf_counter() - start)
-        row.peak_memory_mib = memory.mib
-        rows.append(row)
+        row = Row(registry.method(method).label, f"{name} {value:g}", {name: value},
+                  setup_seconds=setup)  # fmt: skip
+        rows.append(_score_reconstructor(row, rec, scenes))
     return rows
 
 
@@ -295,7 +288,7 @@ def svcode_rows(
     up once and reused for the scenes of later regimes. ``footprint`` measures the model's
     size and memory at S and 2S (in a subprocess: slow) on the first row.
     """
-    from ..reconstruct import DEFAULT_MASK_CACHE_BYTES, Reconstructor
+    from ..methods.svcode import DEFAULT_MASK_CACHE_BYTES
 
     patch = system.patch_size
     planned = {"tile": None, "stride": None, "batch": None, "cache": True,
@@ -314,8 +307,8 @@ def svcode_rows(
     chosen = knobs[: len(knobs) if all_knobs is True else max(1, int(all_knobs))]
     for knob in chosen:
         def build(knob: dict = knob) -> Any:
-            rec = Reconstructor.from_weights(
-                weights, system, precision=knob["precision"], tile_size=knob["tile"],
+            rec = build_reconstructor(
+                "svcode", system, weights, precision=knob["precision"], tile_size=knob["tile"],
                 stride=knob["stride"], batch_size=knob["batch"], skip_empty=knob["skip"],
                 mask_cache_bytes=DEFAULT_MASK_CACHE_BYTES if knob["cache"] else 0,
             )  # fmt: skip
@@ -336,16 +329,15 @@ def learned_rows(
     weights: Path, system: SystemConfig, scenes: list[Scene], cache: dict | None = None
 ) -> list[Row]:
     """One row for a trained MultiWienerNet or SV-FourierNet, with its footprint."""
-    from ..learned_baselines import LearnedReconstructor
+    method = registry.method_of_architecture(read_model_metadata(weights)["architecture"])
 
     def build() -> Any:
-        rec = LearnedReconstructor.from_weights(weights, system)
+        rec = build_reconstructor(method, system, weights)
         rec.reconstruct(scenes[0].raw)  # warm-up
         return rec
 
     rec, setup, fresh = _cached(cache, ("learned", str(weights)), build)
-    method = LEARNED_LABELS[type(rec.model).__name__]
-    row = Row(method, "fp32", {"precision": "fp32"}, setup_seconds=setup)
+    row = Row(registry.method(method).label, "fp32", {"precision": "fp32"}, setup_seconds=setup)
     _score_reconstructor(row, rec, scenes)
     if fresh:
         row.footprint = model_footprint(weights, system).to_dict()
@@ -632,64 +624,17 @@ def merge_reports(earlier: dict[str, Any], report: dict[str, Any]) -> dict[str, 
     }
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> None:
-    """Register ``svcode bench``."""
-    parser = subparsers.add_parser(
-        "bench",
-        help="work–precision benchmark of every method and knob in every regime",
-        description=__doc__.split("\n\n")[0],
-    )
-    parser.add_argument("--quick", action="store_true",
-                        help="small version: two scenes, fewer knobs, every regime (minutes)")
-    parser.add_argument("--regimes", nargs="+", choices=list(REGIMES), default=list(REGIMES),
-                        help="instruments the test frames come from (default: all)")
-    parser.add_argument("--all-knobs", action="store_true",
-                        help="in the matched regime, also SV-CoDe's time-only knobs (mask "
-                        "cache off, bf16, skipping off)")  # fmt: skip
-    parser.add_argument("--rank-sweep", action="store_true",
-                        help="in the matched regime, also LSV-ADMM with K = 1 and 6")
-    parser.add_argument("--out", type=Path, default=Path("bench/results"), help="output folder")
-    parser.add_argument("--system", default="cm2-mini", help="preset or system JSON")
-    parser.add_argument("--weights", type=Path, help="trained SV-CoDe model for its rows")
-    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
-    parser.add_argument("--methods", nargs="*", choices=METHOD_FAMILIES,
-                        default=list(METHOD_FAMILIES),
-                        help="method families to run (default: all; none: only the "
-                        "--ablations rows, e.g. with --merge)")  # fmt: skip
-    parser.add_argument("--ablations", nargs="+", type=Path, default=[], metavar="WEIGHTS",
-                        help="further SV-CoDe models (e.g. ablations), one row each at the "
-                        "default knob")  # fmt: skip
-    parser.add_argument("--learned", nargs="+", type=Path, default=[], metavar="WEIGHTS",
-                        help="trained MultiWienerNet / SV-FourierNet model files (svcode "
-                        "train --method multiwiener|fouriernet)")  # fmt: skip
-    parser.add_argument("--merge", action="store_true",
-                        help="keep the rows of other methods from an earlier report in "
-                        "--out (same system and scenes); rows of the methods run now "
-                        "replace theirs")  # fmt: skip
-    parser.set_defaults(func=run)
+def write_report(report: dict[str, Any], out: Path, merge: bool = False) -> Path:
+    """Write ``regimes.{json,md,png}`` to ``out`` (one work–precision panel per regime).
 
-
-def run(args: argparse.Namespace) -> int:
-    """Run the benchmark and write ``regimes.{json,md,png}`` to ``args.out``.
-
-    The figure has one work–precision panel per regime.
+    With ``merge``, the rows of other methods in an earlier ``regimes.json`` there are kept
+    (:func:`merge_reports`). Returns the common stem ``out / "regimes"``.
     """
-    for path in [args.weights, *args.ablations, *args.learned]:
-        if path is not None and not path.is_file():
-            raise FileNotFoundError(f"weights not found: {path}")
-    torch.set_num_threads(args.threads)
-    report = run_benchmark(
-        load_system(args.system), args.quick, args.weights,
-        methods=tuple(args.methods), ablations=tuple(args.ablations),
-        learned=tuple(args.learned), regimes=tuple(args.regimes),
-        all_knobs=args.all_knobs, rank_sweep=args.rank_sweep,
-    )  # fmt: skip
-    args.out.mkdir(parents=True, exist_ok=True)
-    stem = args.out / "regimes"
-    if args.merge and Path(f"{stem}.json").is_file():
+    out.mkdir(parents=True, exist_ok=True)
+    stem = out / "regimes"
+    if merge and Path(f"{stem}.json").is_file():
         report = merge_reports(json.loads(Path(f"{stem}.json").read_text()), report)
     Path(f"{stem}.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
     write_markdown(report, Path(f"{stem}.md"))
     plot_pareto(report, Path(f"{stem}.png"))
-    print(f"wrote {stem}.json, .md and .png ({report['total_seconds'] / 60:.1f} min)")
-    return 0
+    return stem

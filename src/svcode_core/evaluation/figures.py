@@ -11,8 +11,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 
-from .config import SystemConfig  # noqa: E402
-from .geometry import sub_view_origins  # noqa: E402
+from ..config import SystemConfig  # noqa: E402
+from ..physics.geometry import sub_view_origins  # noqa: E402
 
 __all__ = ["calibration_figure", "montage", "overview_figure"]
 
@@ -91,7 +91,7 @@ def calibration_figure(path: str | Path, calibration, frames: np.ndarray) -> Pat
     ----------
     path : str or Path
         PNG to write.
-    calibration : svcode_core.calibration.Calibration
+    calibration : svcode_core.physics.calibration.Calibration
     frames : numpy.ndarray
         The scan ``(N, H, W)``; its maximum over frames is the background of panel 1.
     """

@@ -25,7 +25,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from .config import SystemConfig
+from ..config import SystemConfig
+from ..methods.registry import ARCHITECTURES, method_of_architecture
 
 __all__ = ["Footprint", "PeakMemory", "doubled_system", "model_footprint"]
 
@@ -86,17 +87,16 @@ class Footprint:
 
 def _build(architecture: str, config: Any, system: SystemConfig) -> tuple[nn.Module, Any]:
     """A fresh model of ``architecture`` for ``system`` and a reconstructor around it."""
-    from .learned_baselines import LearnedReconstructor, MultiWienerNet, SVFourierNet
-    from .network import SVCoDe
-    from .reconstruct import Reconstructor
+    from ..methods.build import build_reconstructor
+    from ..methods.learned import LEARNED_MODELS
+    from ..network import SVCoDe
 
-    if architecture == "SVCoDe":
+    if architecture in LEARNED_MODELS:
+        model = LEARNED_MODELS[architecture](config, system)
+    else:
         model = SVCoDe(config)
-        return model, Reconstructor(model, system)
-    model = {"MultiWienerNet": MultiWienerNet, "SVFourierNet": SVFourierNet}[architecture](
-        config, system
-    )
-    return model, LearnedReconstructor(model, system)
+    method = method_of_architecture(architecture)
+    return model, build_reconstructor(method, system, model=model)
 
 
 def _one_frame(
@@ -126,11 +126,11 @@ def model_footprint(weights: str | Path, system: SystemConfig) -> Footprint:
     system : SystemConfig
         The field size S it is measured at (and 2S, :func:`doubled_system`).
     """
-    from .network import read_model_metadata
+    from ..methods.model_file import read_model_metadata
 
     meta = read_model_metadata(weights)
     architecture, config = meta["architecture"], meta["model_config"]
-    if architecture not in ("SVCoDe", "MultiWienerNet", "SVFourierNet"):
+    if architecture not in ARCHITECTURES:
         raise ValueError(f"{Path(weights).name}: no footprint for a {architecture}")
     threads = torch.get_num_threads()
     params, peak = _in_fresh_process(architecture, config, system, threads)

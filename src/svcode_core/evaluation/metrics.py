@@ -7,7 +7,7 @@ lenses through strongly aberrated, vignetted and truncated PSFs):
 * **centre**: normalised field radius ``ρ = sqrt(u² + v²) < 0.5``;
 * **outer ring**: ``ρ > 0.8``, corners included (``ρ`` reaches ``√2`` there).
 
-``u`` and ``v`` are the normalised object coordinates of :mod:`svcode_core.geometry`
+``u`` and ``v`` are the normalised object coordinates of :mod:`svcode_core.physics.geometry`
 (pixel ``i`` at ``2 i / (S - 1) - 1``). Every metric takes an explicit ``data_range`` (the
 span of intensities the truth may take; 1 for objects normalised to ``[0, 1]``) rather than
 guessing it from the data, and compares in absolute units: a reconstruction with the
@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from skimage.metrics import structural_similarity
 
-from .geometry import normalized_coordinates
+from ..physics.geometry import normalized_coordinates
 
 __all__ = [
     "CENTRE_RADIUS",
@@ -60,6 +60,24 @@ def field_zones(size: int) -> dict[str, np.ndarray]:
     return {"centre": radius < CENTRE_RADIUS, "ring": radius > RING_RADIUS}
 
 
+def psnr_from_mse(mse: float | torch.Tensor, data_range: float = 1.0) -> float | torch.Tensor:
+    """PSNR in dB of a mean squared error: ``10 log10(data_range² / mse)``.
+
+    The one definition of the PSNR: :func:`psnr` and the training metrics
+    (:func:`svcode_core.training.loss.psnr_per_sample`, on tensors) use it.
+
+    Examples
+    --------
+    >>> psnr_from_mse(1e-3)
+    30.0
+    >>> psnr_from_mse(torch.tensor([1e-2, 1e-4]))
+    tensor([20., 40.])
+    """
+    if isinstance(mse, torch.Tensor):
+        return 10.0 * torch.log10(data_range**2 / mse)
+    return math.inf if mse == 0.0 else 10.0 * math.log10(data_range**2 / mse)
+
+
 def psnr(
     truth: np.ndarray,
     estimate: np.ndarray,
@@ -89,12 +107,16 @@ def psnr(
         if mask.shape != truth.shape or not mask.any():
             raise ValueError(f"mask must be a non-empty boolean image of shape {truth.shape}")
         truth, estimate = truth[mask], estimate[mask]
-    mse = float(np.mean((truth - estimate) ** 2))
-    return math.inf if mse == 0.0 else 10.0 * math.log10(data_range**2 / mse)
+    return psnr_from_mse(float(np.mean((truth - estimate) ** 2)), data_range)
 
 
 def ssim(truth: np.ndarray, estimate: np.ndarray, data_range: float) -> float:
-    """Mean structural similarity (scikit-image defaults: 7 × 7 uniform window)."""
+    """Mean structural similarity (scikit-image defaults: 7 × 7 uniform window).
+
+    The SSIM every report uses. Training uses a differentiable SSIM with a Gaussian window
+    (:func:`svcode_core.training.loss.ssim_per_sample`), so its validation SSIM is close to
+    this one but not equal.
+    """
     truth, estimate = _check_pair(truth, estimate, data_range)
     return float(structural_similarity(truth, estimate, data_range=data_range))
 

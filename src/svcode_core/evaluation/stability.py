@@ -19,10 +19,10 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..phantoms import make_object
+from ..physics.noise import apply_sensor_noise
+from ..physics.simulate import Simulator
 from .metrics import psnr
-from .noise import apply_sensor_noise
-from .phantoms import make_object
-from .simulate import Simulator
 
 __all__ = ["Case", "run_case", "stability_cases"]
 

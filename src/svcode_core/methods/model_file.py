@@ -2,8 +2,8 @@
 
 A model file is a plain safetensors file whose string metadata holds the JSON model
 configuration (:class:`~svcode_core.network.config.ModelConfig` for SV-CoDe and its
-stages, :class:`~svcode_core.learned_baselines.MultiWienerConfig` or
-:class:`~svcode_core.learned_baselines.FourierNetConfig` for the learned baselines), the JSON
+stages, :class:`~svcode_core.methods.learned.MultiWienerConfig` or
+:class:`~svcode_core.methods.learned.FourierNetConfig` for the learned baselines), the JSON
 :class:`~svcode_core.config.SystemConfig` the model was trained for, the architecture
 name and optional JSON ``extra`` information. Loading never unpickles anything: the
 header is checked first (a safetensors file starts with an 8-byte little-endian header
@@ -24,8 +24,9 @@ from safetensors.torch import load_file, save_file
 from torch import nn
 
 from ..config import SystemConfig
-from .config import ModelConfig
-from .models import DemixNet, ReconNet, SVCoDe
+from ..network.config import ModelConfig
+from ..network.models import DemixNet, ReconNet, SVCoDe
+from .learned.models import LEARNED_MODELS
 
 __all__ = ["FORMAT", "load_model", "read_model_metadata", "save_model"]
 
@@ -46,19 +47,11 @@ def _svcode_family(cls: type) -> _Architecture:
 
 
 def _architectures() -> dict[str, _Architecture]:
-    """Every architecture a model file may hold, by class name."""
-    # imported here: the learned baselines build on this package
-    from ..learned_baselines import (
-        FourierNetConfig,
-        MultiWienerConfig,
-        MultiWienerNet,
-        SVFourierNet,
-    )
-
+    """Every architecture a model file may hold, by class name: SV-CoDe and its two
+    stages, and the learned baselines."""
     return {
         **{cls.__name__: _svcode_family(cls) for cls in (SVCoDe, DemixNet, ReconNet)},
-        "MultiWienerNet": _Architecture(MultiWienerConfig, MultiWienerNet),
-        "SVFourierNet": _Architecture(FourierNetConfig, SVFourierNet),
+        **{name: _Architecture(cls.config_class, cls) for name, cls in LEARNED_MODELS.items()},
     }
 
 

@@ -2,7 +2,7 @@
 
 :class:`Reconstructor` takes a raw sensor frame ``(H, W)`` (``system.sensor_shape``) or a
 stack ``(T, H, W)``, validates it, zero-pads it, cuts the nine ``S × S`` sub-views, runs
-the model over overlapping tiles (see :mod:`svcode_core.tiling`) and returns the
+the model over overlapping tiles (see :mod:`svcode_core.methods.tiling`) and returns the
 reconstruction, optionally the nine demixed views, the time spent in each stage and the
 tile counters.
 
@@ -27,75 +27,36 @@ import math
 import threading
 import time
 from collections.abc import Generator
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from .config import SystemConfig
-from .frames import as_frame_stack, finite_frame  # noqa: F401 (the baselines import them here)
-from .geometry import extract_sub_views, pad_sensor_frame
-from .noise import noise_floor
+from ..config import DEFAULT_MEMORY_BUDGET, SystemConfig
+from ..physics.geometry import extract_sub_views, pad_sensor_frame
+from ..physics.noise import noise_floor
+from .base import (
+    PRECISIONS,
+    BaseReconstructor,
+    FrameProgress,
+    ReconstructionResult,
+    precision_dtype,
+    resolve_device,
+)
+from .frames import finite_frame
 from .tiling import (
     DEFAULT_SKIP_FACTOR,
     TileGrid,
     TileProgress,
-    exhaust,
     iter_tiled,
     tiles_with_signal,
 )
 
-__all__ = [
-    "PRECISIONS",
-    "FrameProgress",
-    "ReconstructionResult",
-    "Reconstructor",
-    "check_frame_shape",
-    "plan_tiles",
-    "resolve_device",
-]
+__all__ = ["Reconstructor", "plan_tiles"]
 
-DEFAULT_MASK_CACHE_BYTES = 1 << 30
-DEFAULT_TILE_MEMORY_BYTES = 1 << 30
-PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}
-
-
-def resolve_device(device: str | torch.device) -> torch.device:
-    """A :class:`torch.device` for ``device``, or a clear error when it is unavailable."""
-    try:
-        resolved = torch.device(device)
-    except (RuntimeError, TypeError) as err:
-        raise ValueError(f"device: {device!r} is not a device name ({err})") from None
-    if resolved.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError("device: CUDA is not available (no GPU, or PyTorch built without CUDA)")
-    if resolved.type == "cuda" and resolved.index is not None:
-        if resolved.index >= torch.cuda.device_count():
-            raise ValueError(
-                f"device: {device} does not exist ({torch.cuda.device_count()} CUDA devices)"
-            )
-    if resolved.type == "mps" and not torch.backends.mps.is_available():
-        raise ValueError("device: MPS (Apple GPU) is not available on this machine")
-    if resolved.type not in ("cpu", "cuda", "mps"):
-        raise ValueError(f"device: {device!r} is not supported; use cpu, cuda or mps")
-    return resolved
-
-
-def check_frame_shape(shape: tuple[int, ...], system: SystemConfig) -> None:
-    """Raise :class:`ValueError` unless ``shape`` is the raw sensor size of ``system``."""
-    expected = tuple(system.sensor_shape)
-    if tuple(shape) == expected:
-        return
-    got = "×".join(map(str, shape))
-    hint = ""
-    if tuple(shape) == tuple(system.padded_shape):
-        hint = " (this is the padded size: pass the raw, unpadded sensor frame)"
-    raise ValueError(
-        f"frame is {got} pixels but system {system.name!r} expects raw sensor frames of "
-        f"{expected[0]}×{expected[1]}{hint}; check that the system configuration "
-        "(--system, or the one stored with the data) matches the input"
-    )
+DEFAULT_MASK_CACHE_BYTES = DEFAULT_MEMORY_BUDGET
+DEFAULT_TILE_MEMORY_BYTES = DEFAULT_MEMORY_BUDGET
 
 
 def plan_tiles(
@@ -150,42 +111,6 @@ def plan_tiles(
     return side, max(side - overlap, 1), batch
 
 
-@dataclass(frozen=True)
-class FrameProgress:
-    """Progress of a reconstruction: frame ``frame`` of ``frames``, tiles of that frame."""
-
-    frame: int
-    frames: int
-    tiles_done: int
-    tiles_total: int
-
-
-@dataclass
-class ReconstructionResult:
-    """What :meth:`Reconstructor.reconstruct` returns.
-
-    Attributes
-    ----------
-    reconstruction : numpy.ndarray
-        ``(S, S)`` for a frame, ``(T, S, S)`` for a stack; float32.
-    views : numpy.ndarray or None
-        Demixed views ``(9, S, S)`` or ``(T, 9, S, S)`` when requested.
-    timings : dict
-        Seconds per stage, summed over frames: ``prepare`` (checks, padding, sub-views,
-        skip test), ``model`` (inside the network), ``blend`` (the rest of the tiling loop)
-        and ``total``.
-    tiles_total, tiles_run, tiles_skipped : int
-        Summed over frames.
-    """
-
-    reconstruction: np.ndarray
-    views: np.ndarray | None
-    timings: dict[str, float] = field(default_factory=dict)
-    tiles_total: int = 0
-    tiles_run: int = 0
-    tiles_skipped: int = 0
-
-
 def _relay(
     tiled: Generator[TileProgress, None, Any], index: int, count: int
 ) -> Generator[FrameProgress, None, Any]:
@@ -202,7 +127,7 @@ def _relay(
             raise
 
 
-class Reconstructor:
+class Reconstructor(BaseReconstructor):
     """Tiled SV-CoDe reconstruction of raw CM² frames.
 
     Parameters
@@ -224,7 +149,7 @@ class Reconstructor:
     batch_size : int, optional
         Tiles per model call; default planned (8 with the system's patch size).
     skip_empty : bool
-        Skip tiles without signal (see :mod:`svcode_core.tiling`).
+        Skip tiles without signal (see :mod:`svcode_core.methods.tiling`).
     skip_factor : float
         ``k`` of the skip threshold ``dark_offset + k · noise_floor``.
     mask_cache_bytes : int
@@ -244,6 +169,8 @@ class Reconstructor:
     ((384, 384), 12)
     """
 
+    method = "svcode"
+
     def __init__(
         self,
         model: torch.nn.Module,
@@ -262,8 +189,7 @@ class Reconstructor:
             raise TypeError(f"system must be a SystemConfig, got {type(system).__name__}")
         self.system = system.validate()
         self.device = resolve_device(device)
-        if precision not in PRECISIONS:
-            raise ValueError(f"precision: {precision!r} is not one of {sorted(PRECISIONS)}")
+        precision_dtype(precision, self.method)
         if precision == "fp16" and self.device.type == "cpu":
             raise ValueError("precision: fp16 is not supported on the CPU; use bf16 or fp32")
         self.precision = precision
@@ -302,7 +228,7 @@ class Reconstructor:
 
         ``options`` are those of the constructor (``device``, ``precision`` ...).
         """
-        from .network import load_model
+        from .model_file import load_model
 
         model, system = load_model(path, system=system, device=options.get("device", "cpu"))
         return cls(model, system, **options)
@@ -316,19 +242,13 @@ class Reconstructor:
         FileNotFoundError
             If no model is bundled for that system.
         """
-        from .pretrained import require_bundled_weights
+        from ..pretrained import require_bundled_weights
 
         path = require_bundled_weights(system)
         return cls.from_weights(path, system if isinstance(system, SystemConfig) else None,
                                 **options)
 
     # ------------------------------------------------------------------ input
-    def _check_input(self, frames: Any) -> np.ndarray:
-        """The input as a ``(T, H, W)`` array (a view where possible), validated for shape."""
-        stack = as_frame_stack(frames)
-        check_frame_shape(stack.shape[1:], self.system)
-        return stack
-
     def prepare(self, frame: np.ndarray, index: int = 0) -> np.ndarray:
         """One raw frame → its nine sub-views ``(9, S, S)`` float32 (checked, clipped at 0)."""
         values = finite_frame(frame, index)
@@ -362,10 +282,10 @@ class Reconstructor:
         """Generator form of :meth:`reconstruct`: yields progress after every batch of tiles.
 
         Stop it with ``.close()`` or by setting ``cancel`` (then
-        :class:`~svcode_core.tiling.Cancelled` is raised); the result is the generator's
+        :class:`~svcode_core.methods.tiling.Cancelled` is raised); the result is the generator's
         return value.
         """
-        stack = self._check_input(frames)
+        stack = self.check_frames(frames)
         single = np.asarray(frames).ndim == 2
         count, size = stack.shape[0], self.system.sub_view_size
         recon = np.empty((count, size, size), dtype=np.float32)
@@ -403,21 +323,3 @@ class Reconstructor:
             result.reconstruction = recon[0]
             result.views = None if views is None else views[0]
         return result
-
-    def reconstruct(self, frames: Any, return_views: bool = False) -> ReconstructionResult:
-        """Reconstruct a raw frame ``(H, W)`` or a stack ``(T, H, W)``.
-
-        Parameters
-        ----------
-        frames : array_like
-            Raw sensor reading(s) of shape ``system.sensor_shape`` (or a stack of them).
-        return_views : bool
-            Also return the nine demixed views of every frame.
-
-        Returns
-        -------
-        ReconstructionResult
-        """
-        return exhaust(self.iter_reconstruct(frames, return_views))
-
-    __call__ = reconstruct

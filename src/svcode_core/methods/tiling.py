@@ -27,7 +27,7 @@ Scene-adaptive skipping
 
 The model is given as ``run_batch(tiles, origins) -> (demixed or None, reconstruction)``
 on NumPy arrays, so this module is independent of the deep-learning framework; see
-:class:`svcode_core.reconstruct.Reconstructor` for the PyTorch side.
+:class:`svcode_core.methods.svcode.Reconstructor` for the PyTorch side.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ from typing import Any, TypeVar
 import numpy as np
 from scipy.ndimage import uniform_filter
 
-from .config import N_LENSES
+from ..config import N_LENSES
 
 __all__ = [
     "DEFAULT_SKIP_FACTOR",

@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..config import N_LENSES
+from ..config import DEFAULT_MEMORY_BUDGET, N_LENSES
 from .blocks import CoDeBlock, ViewFusion
 from .config import ModelConfig
 from .coordgate import CoordGate, CoordGrid, MaskCache, MaskField
@@ -29,7 +29,7 @@ from .lattice import interpolate, lattice_axis
 
 __all__ = ["DemixNet", "MaskLayer", "ReconNet", "SVCoDe", "UNet"]
 
-DEFAULT_CACHE_BYTES = 1 << 30
+DEFAULT_CACHE_BYTES = DEFAULT_MEMORY_BUDGET
 
 
 class MaskLayer(NamedTuple):

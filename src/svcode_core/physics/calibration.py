@@ -17,9 +17,9 @@ the source to the padded-sensor point ``c_ℓ - S//2 + p_n`` blurred by its PSF 
    nominal PSF at ``p_n`` is the one the operator uses: the grid PSFs interpolated.
 3. **PSFs**: the ``k × k`` window at ``round(c_ℓ) - S//2 + p_n`` of every frame is the
    registered PSF of lens ``ℓ`` at ``p_n`` (the sub-pixel part of the chief ray stays in
-   it, as in :mod:`svcode_core.instrument`). The PSFs on the ``G × G`` grid are fitted to
+   it, as in :mod:`svcode_core.physics.instrument`). The PSFs on the ``G × G`` grid are fitted to
    them by least squares through the same cubic interpolation the low-rank operator uses
-   (:func:`svcode_core.lowrank.interpolation_basis`), pixel by pixel over the pixels that
+   (:func:`svcode_core.physics.lowrank.interpolation_basis`), pixel by pixel over the pixels that
    are on the sensor, with a weak prior towards the nominal model for grid nodes the scan
    does not reach.
 4. **Vignetting**: the throughput (sum) of every grid PSF, relative to the nominal
@@ -42,7 +42,7 @@ from scipy import ndimage
 from scipy.stats import median_abs_deviation, norm
 from skimage.feature import peak_local_max
 
-from .config import N_LENSES, SystemConfig
+from ..config import N_LENSES, SystemConfig
 from .lowrank import decompose_psfs, interpolation_basis
 from .optics import system_psfs
 
@@ -507,17 +507,17 @@ def save_calibration(calibration: Calibration, out_dir: str | Path, nominal: Sys
     """Write the calibrated system and everything it refers to into ``out_dir``.
 
     Files: ``system.json`` (``psf_model`` = ``psfs.tif``, relative), ``psfs.tif`` and
-    ``psfs.positions.json`` (:func:`svcode_core.psf_io.save_psfs`), ``calibration.json``
+    ``psfs.positions.json`` (:func:`svcode_core.physics.psf_io.save_psfs`), ``calibration.json``
     (fitted chief rays, offsets, array motion, throughput, ranks), ``report.txt`` and
-    ``report.png`` (:func:`svcode_core.figures.calibration_figure`; needs ``frames``).
+    ``report.png`` (:func:`svcode_core.evaluation.figures.calibration_figure`; needs ``frames``).
 
     Returns
     -------
     dict of str to Path
         The files written, by kind.
     """
-    from .figures import calibration_figure
-    from .io import write_json_atomic
+    from ..evaluation.figures import calibration_figure
+    from ..io import write_json_atomic
     from .psf_io import save_psfs
 
     out = Path(out_dir)

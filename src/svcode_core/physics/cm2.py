@@ -5,7 +5,7 @@
 radius (``margin``), so the blur reaching past the object's edge is kept: the lens
 convolution is the full linear one. The padded frame returned by :meth:`CM2Operator.forward`
 is zero outside the sensor window, which is exactly what the reconstruction pipeline
-builds from a raw frame with :func:`~svcode_core.geometry.pad_sensor_frame`.
+builds from a raw frame with :func:`~svcode_core.physics.geometry.pad_sensor_frame`.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .config import N_LENSES, SystemConfig
+from ..config import N_LENSES, SystemConfig
 from .geometry import crop_to_sensor, extract_sub_views, place_sub_views
 from .lowrank import LowRankSVOperator, PSFDecomposition, decompose_psfs, fft_shape, plan_chunks
 
@@ -107,8 +107,8 @@ class CM2Operator:
             Of the operator.
         memory_budget : int, optional
             Bytes for the lens blur's kept spectra and working memory
-            (:class:`~svcode_core.lowrank.LowRankSVOperator`; default
-            :data:`~svcode_core.lowrank.DEFAULT_MEMORY_BUDGET`).
+            (:class:`~svcode_core.physics.lowrank.LowRankSVOperator`; default
+            :data:`~svcode_core.physics.lowrank.DEFAULT_MEMORY_BUDGET`).
         """
         psfs = np.asarray(psfs)
         if psfs.ndim != 4 or psfs.shape[0] != N_LENSES:
@@ -261,7 +261,7 @@ def simulation_cost(
     ----------
     system : SystemConfig
     memory_budget : int, optional
-        Of the operator (default :data:`~svcode_core.lowrank.DEFAULT_MEMORY_BUDGET`).
+        Of the operator (default :data:`~svcode_core.physics.lowrank.DEFAULT_MEMORY_BUDGET`).
     dtype : torch.dtype
         Of the operator.
     """

@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from .config import (
+from ..config import (
     N_LENSES,
     ConfigError,
     JsonFile,

@@ -1,7 +1,7 @@
 """Coordinates, sub-view extraction and placement, sensor truncation.
 
 Every map here is linear and comes with its exact adjoint, so that model-based solvers
-can compose them with the low-rank blur (see :mod:`svcode_core.cm2`). Conventions are
+can compose them with the low-rank blur (see :mod:`svcode_core.physics.cm2`). Conventions are
 those of :mod:`svcode_core.config`: ``(row, col)`` order, normalised coordinates in
 ``[-1, 1]`` from the first to the last pixel centre, lenses row-major.
 """
@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .config import N_LENSES, SystemConfig
+from ..config import N_LENSES, SystemConfig
 
 __all__ = [
     "assemble_frame",

@@ -24,8 +24,8 @@ import numpy as np
 import torch
 from scipy import ndimage
 
+from ..config import ConfigError, NoiseConfig, SystemConfig
 from .cm2 import CM2Operator
-from .config import ConfigError, NoiseConfig, SystemConfig
 from .departures import Departures, load_departures
 from .geometry import extract_sub_views
 from .noise import SensorModel, fixed_pattern

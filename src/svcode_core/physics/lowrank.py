@@ -10,7 +10,7 @@ weights ``W_k``; the weights are interpolated to every object pixel as coefficie
 
 (:class:`LowRankSVOperator`, FFT convolution, linear with zero boundary, output the
 size of the input). With ``K`` equal to the full rank of the PSF grid this equals the
-exact per-pixel SV convolution of :func:`svcode_core.reference.sv_convolve_reference`
+exact per-pixel SV convolution of :func:`svcode_core.physics.reference.sv_convolve_reference`
 with the same interpolation basis ``φ``; at smaller ``K`` the difference is the
 truncation alone.
 
@@ -22,7 +22,7 @@ Conventions
 * PSF grids are arrays ``(G·G, h, w)``; grid node ``g = a·G + b`` sits at normalised
   object position ``(v, u) = (t_a, t_b)`` with ``t = linspace(-1, 1, G)`` (``v`` outer).
 * Object pixel ``i`` of an ``S``-pixel axis sits at ``2 i / (S - 1) - 1``
-  (:func:`svcode_core.geometry.normalized_coordinates`); margin pixels continue the line
+  (:func:`svcode_core.physics.geometry.normalized_coordinates`); margin pixels continue the line
   beyond ``[-1, 1]`` and take the edge value of the interpolated weights.
 """
 
@@ -37,6 +37,7 @@ import torch
 from scipy.fft import next_fast_len
 from scipy.interpolate import CubicSpline
 
+from ..config import DEFAULT_MEMORY_BUDGET
 from .geometry import normalized_coordinates
 
 __all__ = [
@@ -54,8 +55,6 @@ __all__ = [
 
 _REAL_DTYPES = (torch.float32, torch.float64)
 
-#: default :class:`LowRankSVOperator` memory budget: kept kernel spectra plus working memory
-DEFAULT_MEMORY_BUDGET = 1 << 30
 
 
 def _pair(value: int | Sequence[int], name: str) -> tuple[int, int]:

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .config import NoiseConfig
+from ..config import NoiseConfig
 
 __all__ = [
     "SensorModel",

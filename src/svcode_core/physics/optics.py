@@ -21,7 +21,7 @@ Conventions
 * A PSF is a ``(k, k)`` float64 array whose centre pixel ``(k // 2, k // 2)`` is the ideal
   (undistorted) image point ``c_ℓ + r``; pixel ``(i, j)`` is the sensor offset
   ``(i - k // 2, j - k // 2)`` in ``(row, col) = (v, u)`` order, the same orientation as
-  the object (the kernel convention of :mod:`svcode_core.lowrank`).
+  the object (the kernel convention of :mod:`svcode_core.physics.lowrank`).
 * A pixel holds the intensity at its centre. When ``airy_radius`` is too small for the
   intensity to be Nyquist-sampled by the pixels (below ``1.2197 px``), it holds the mean of
   ``q × q`` samples over the pixel instead, ``q`` the smallest integer that is, so that
@@ -39,7 +39,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.special import jn_zeros
 
-from .config import N_LENSES, OpticsConfig, SystemConfig
+from ..config import N_LENSES, OpticsConfig, SystemConfig
 
 __all__ = [
     "lens_psf",

@@ -4,12 +4,12 @@ A stack holds the PSFs of the nine lenses on the system's ``G × G`` PSF grid, e
 ``k × k`` and registered to its ideal image point (centre pixel ``(k // 2, k // 2)``),
 lens-major: ``(9, G·G, k, k)`` or flattened ``(9·G·G, k, k)``. The object positions of the
 grid nodes travel in a JSON file ``{"positions": [[v, u], ...]}`` (or a two-column CSV)
-and must be those of :func:`svcode_core.optics.psf_grid_positions`. Measured PSFs keep
+and must be those of :func:`svcode_core.physics.optics.psf_grid_positions`. Measured PSFs keep
 their scale: the relative throughput across the field is part of the calibration.
 
 A system whose ``psf_model`` names such a stack (as ``svcode calibrate`` writes) is built
 from it everywhere: :func:`model_psfs` is what :meth:`CM2Operator.from_system
-<svcode_core.cm2.CM2Operator.from_system>` uses.
+<svcode_core.physics.cm2.CM2Operator.from_system>` uses.
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import N_LENSES, SystemConfig
-from .io import read_tiff, write_json_atomic, write_tiff
+from ..config import N_LENSES, SystemConfig
+from ..io import read_tiff, write_json_atomic, write_tiff
 from .optics import psf_grid_positions, system_psfs
 
 __all__ = ["load_measured_psfs", "model_psfs", "positions_path", "save_psfs"]
@@ -145,7 +145,7 @@ def load_measured_psfs(
     positions : str, Path or array_like
         The object positions ``(v, u)`` of the grid nodes, ``(G·G, 2)``: a JSON file
         ``{"positions": [[v, u], ...]}``, a two-column CSV (optional header line), or an
-        array. They must be :func:`~svcode_core.optics.psf_grid_positions` of ``config``
+        array. They must be :func:`~svcode_core.physics.optics.psf_grid_positions` of ``config``
         within ``1e-6``.
     config : SystemConfig
         Fixes ``G`` (``optics.psf_grid``) and ``k`` (``optics.kernel_size``).
@@ -205,7 +205,7 @@ def model_psfs(config: SystemConfig) -> np.ndarray:
     config : SystemConfig
         With ``psf_model`` set, the stack it names is read with its positions JSON
         (:func:`positions_path`) and checked by :func:`load_measured_psfs`; otherwise
-        :func:`~svcode_core.optics.system_psfs`.
+        :func:`~svcode_core.physics.optics.system_psfs`.
 
     Raises
     ------

@@ -2,9 +2,9 @@
 
 :func:`sv_convolve_reference` scatters every nonzero object pixel with its own PSF,
 interpolated from the PSF grid with the same basis as the low-rank model
-(:func:`svcode_core.lowrank.interpolation_basis`). The low-rank operator at full rank
+(:func:`svcode_core.physics.lowrank.interpolation_basis`). The low-rank operator at full rank
 reproduces it to float precision, so :func:`lowrank_error` measures the truncation
-error of each rank ``K`` alone. Conventions are those of :mod:`svcode_core.lowrank`.
+error of each rank ``K`` alone. Conventions are those of :mod:`svcode_core.physics.lowrank`.
 """
 
 from __future__ import annotations
@@ -133,11 +133,11 @@ def lowrank_error(
     x : array_like
         Object on the padded grid, shape ``(S_r + 2·margin, S_c + 2·margin)``.
     psfs : array_like
-        PSF grid ``(G·G, h, w)`` (see :func:`svcode_core.lowrank.decompose_psfs`).
+        PSF grid ``(G·G, h, w)`` (see :func:`svcode_core.physics.lowrank.decompose_psfs`).
     ranks : iterable of int
         The ``K`` to evaluate.
     margin, order
-        As in :func:`svcode_core.lowrank.coefficient_maps`.
+        As in :func:`svcode_core.physics.lowrank.coefficient_maps`.
     dtype : torch.dtype
         Precision of the low-rank operator (float64 isolates the truncation error).
 

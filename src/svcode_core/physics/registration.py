@@ -32,9 +32,9 @@ import torch
 from scipy import ndimage
 from scipy.optimize import least_squares
 
+from ..config import N_LENSES, SystemConfig
 from .calibration import fit_array
 from .cm2 import CM2Operator
-from .config import N_LENSES, SystemConfig
 from .geometry import crop_to_sensor, extract_sub_views, pad_sensor_frame
 
 __all__ = ["Registration", "register_frame"]

@@ -1,9 +1,9 @@
 """Simulated point-source scans: what a lab records to calibrate a CM² instrument.
 
 A scan is one raw frame per source position (a bead at one object pixel) and a dark frame,
-simulated through any :class:`~svcode_core.simulate.Simulator` (so through a departed
-instrument when it has :class:`~svcode_core.departures.Departures`). It is the input of
-:func:`svcode_core.calibration.calibrate` and of ``svcode calibrate``.
+simulated through any :class:`~svcode_core.physics.simulate.Simulator` (so through a departed
+instrument when it has :class:`~svcode_core.physics.departures.Departures`). It is the input of
+:func:`svcode_core.physics.calibration.calibrate` and of ``svcode calibrate``.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import SystemConfig
+from ..config import SystemConfig
 from .simulate import Simulator
 
 __all__ = ["scan_grid", "simulate_scan", "with_dark_offset", "write_positions"]

@@ -13,7 +13,7 @@ import warnings
 
 import numpy as np
 
-from .config import SystemConfig
+from ..config import SystemConfig
 
 __all__ = ["check_object", "check_system_geometry", "lenses_off_sensor"]
 

@@ -1,7 +1,7 @@
 """End-to-end simulation of CM² measurements: object → noisy raw frame, views, targets.
 
-With :class:`~svcode_core.departures.Departures` the frame comes from the true instrument
-(:class:`~svcode_core.instrument.Instrument`) while views are cut, as a user would, at the
+With :class:`~svcode_core.physics.departures.Departures` the frame comes from the true instrument
+(:class:`~svcode_core.physics.instrument.Instrument`) while views are cut, as a user would, at the
 nominal system's chief rays.
 """
 
@@ -15,14 +15,14 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from ..config import SystemConfig
+from ..io import write_json_atomic, write_tiff
+from ..outputs import OutputLock
 from .cm2 import CM2Operator
-from .config import SystemConfig
 from .departures import Departures, load_departures
 from .geometry import extract_sub_views, pad_sensor_frame
 from .instrument import Instrument
-from .io import write_json_atomic, write_tiff
 from .noise import SensorModel, apply_sensor_noise
-from .outputs import OutputLock
 from .scene_checks import check_system_geometry
 
 __all__ = ["Simulation", "Simulator", "scene_files"]
@@ -92,7 +92,7 @@ class Simulator:
     ----------
     system : SystemConfig
         Refused if none of its chief rays lies on the sensor; warned about if some do not,
-        or if two coincide (:func:`~svcode_core.scene_checks.check_system_geometry`).
+        or if two coincide (:func:`~svcode_core.physics.scene_checks.check_system_geometry`).
     operator : CM2Operator, optional
         Default: :meth:`CM2Operator.from_system` (pupil-model PSFs, ``system.rank``).
     device, dtype

@@ -2,9 +2,9 @@
 
 Frames of a recording are independent, so they scale out over workers with no
 communication except the frames themselves. Every backend here takes a *factory*, a
-picklable zero-argument callable returning a :class:`~svcode_core.reconstruct.Reconstructor`
-(normally a :class:`ReconstructorSpec`), and yields ``(index, reconstruction, views,
-counters)`` as frames finish, in completion order.
+picklable zero-argument callable returning a reconstructor of any method (normally a
+:class:`~svcode_core.methods.build.MethodSpec`), and yields ``(index, reconstruction,
+views, counters)`` as frames finish, in completion order.
 
 On dask, the factory is scattered to every worker once, and each worker process builds
 its reconstructor (loads the model) on its first frame and keeps it in a worker-side cache
@@ -24,7 +24,7 @@ Running on a cluster with GPUs
     the same path (a shared file system); the input is read and the output written only by
     the client. Each worker loads the model once on its GPU; frames are spread over the
     workers as they become free, and an interrupted run resumes from the frames already
-    written (see :mod:`svcode_core.stream`).
+    written (see :mod:`svcode_core.run.stream`).
 """
 
 from __future__ import annotations
@@ -33,46 +33,17 @@ import contextlib
 import threading
 import uuid
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .config import SystemConfig
-from .reconstruct import Reconstructor
+from ..methods.base import BaseReconstructor
 
-__all__ = ["ReconstructorSpec", "dask_client", "dask_frames", "local_frames"]
+__all__ = ["dask_client", "dask_frames", "local_frames"]
 
 #: ``(index, reconstruction, views or None, counters)``
 FrameResult = tuple[int, np.ndarray, "np.ndarray | None", dict[str, int]]
-Factory = Callable[[], Reconstructor]
-
-
-@dataclass(frozen=True)
-class ReconstructorSpec:
-    """Picklable recipe for a :class:`Reconstructor` built from a weights file.
-
-    Attributes
-    ----------
-    weights : str
-        Path of the trained model.
-    system : SystemConfig or None
-        The instrument; ``None`` uses the one stored with the model.
-    options : dict
-        Keyword arguments of :class:`Reconstructor` (device, precision, tile_size ...).
-    """
-
-    weights: str
-    system: SystemConfig | None = None
-    options: dict[str, Any] = field(default_factory=dict)
-
-    def __call__(self) -> Reconstructor:
-        return Reconstructor.from_weights(self.weights, system=self.system, **self.options)
-
-    def describe(self) -> dict[str, Any]:
-        """JSON-serialisable description (recorded in outputs and resume state)."""
-        return {"method": "svcode", "weights": str(Path(self.weights).resolve()), **self.options}
+Factory = Callable[[], BaseReconstructor]
 
 
 def _counters(result: Any) -> dict[str, int]:
@@ -93,7 +64,7 @@ def local_frames(
         yield index, result.reconstruction, result.views, _counters(result)
 
 
-_WORKER_CACHE: dict[str, Reconstructor] = {}
+_WORKER_CACHE: dict[str, BaseReconstructor] = {}
 _WORKER_LOCK = threading.Lock()
 
 

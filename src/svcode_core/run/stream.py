@@ -18,7 +18,7 @@ Output and resume scheme
 Safety
     Before anything is computed, the outputs are checked (none may be an input or another
     output, a directory, or in a place where no file can be created), every frame is read
-    once and checked (:func:`~svcode_core.frames.finite_frame`: integer frames converted,
+    once and checked (:func:`~svcode_core.methods.frames.finite_frame`: integer frames converted,
     NaN/Inf and out-of-range frames refused) and, when reconstructing in this process, the
     reconstructor is built. Each output is locked (``OUT.tif.lock``,
     :class:`~svcode_core.outputs.OutputLock`) for the whole run, so a second run onto the
@@ -43,12 +43,12 @@ import numpy as np
 import tifffile
 from tqdm import tqdm
 
-from .config import N_LENSES, SystemConfig
-from .frames import finite_frame, require_frames
-from .io import METADATA_KEY, tiff_metadata, write_json_atomic
-from .outputs import OutputLock, check_outputs
+from ..config import N_LENSES, SystemConfig
+from ..io import METADATA_KEY, tiff_metadata, write_json_atomic
+from ..methods.base import check_frame_shape
+from ..methods.frames import finite_frame, require_frames
+from ..outputs import OutputLock, check_outputs
 from .parallel import Factory, FrameResult, dask_client, dask_frames, local_frames
-from .reconstruct import check_frame_shape
 
 __all__ = ["FrameReader", "StreamSummary", "reconstruct_file"]
 
@@ -336,8 +336,8 @@ def reconstruct_file(
     out_path : str or Path
         Output TIFF: ``S × S`` or ``T × S × S`` float32, with the system in its metadata.
     factory : callable
-        Builds the :class:`~svcode_core.reconstruct.Reconstructor` (picklable for dask,
-        e.g. a :class:`~svcode_core.parallel.ReconstructorSpec`).
+        Builds the reconstructor of any method (picklable for dask,
+        e.g. a :class:`~svcode_core.methods.build.MethodSpec`).
     system : SystemConfig, optional
         Default: the one stored in the input TIFF, else ``system.json`` beside it.
     views_path : str or Path, optional
@@ -352,7 +352,7 @@ def reconstruct_file(
     progress : bool
         Show a progress bar on stderr.
     input_scale : float, optional
-        Divide every frame by this full-scale value (see :mod:`svcode_core.frames` for the
+        Divide every frame by this full-scale value (see :mod:`svcode_core.methods.frames` for the
         default rule of integer frames); recorded in the settings.
     inputs : dict, optional
         Further files the run reads (label → path, e.g. the weights), which no output may

@@ -38,10 +38,10 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ..config import N_LENSES, SystemConfig
-from ..departures import Departures
-from ..noise import SensorModel
 from ..phantoms import make_object
-from ..simulate import Simulator
+from ..physics.departures import Departures
+from ..physics.noise import SensorModel
+from ..physics.simulate import Simulator
 
 __all__ = [
     "DATA_FORMAT",
@@ -234,7 +234,7 @@ class TrainingData:
         nominal ``system.noise`` for a dataset without departures). Its ``read`` acts
         pixel by pixel, so it applies to patches of the views as well as to whole frames.
         """
-        from ..instrument import sensor_model
+        from ..physics.instrument import sensor_model
 
         departures = self.frame_departures(index) or Departures()
         sensor = sensor_model(self.system.noise, departures, (1, 1))

@@ -46,11 +46,12 @@ from safetensors.torch import load_file
 from torch.nn.parallel import DistributedDataParallel
 from tqdm.auto import tqdm
 
-from ..learned_baselines import FourierNetConfig, MultiWienerConfig
-from ..network import ModelConfig, load_model, save_model
+from ..methods.learned import FourierNetConfig, MultiWienerConfig
+from ..methods.model_file import load_model, save_model
+from ..network import ModelConfig
 from .dataset import TrainingData
 from .distributed import DistInfo, all_reduce_sum, barrier
-from .loss import joint_loss, psnr, ssim_per_sample
+from .loss import joint_loss, psnr_per_sample, ssim_per_sample
 from .sampler import EpochSampler, derive_seed
 from .tasks import Stages, training_task
 
@@ -352,7 +353,7 @@ class Trainer:
                 n = len(items)
                 values = {"loss": float(loss) * n}
                 for stage, (prediction, target) in stages.items():
-                    values[f"{stage}_psnr"] = float(psnr(prediction, target).sum())
+                    values[f"{stage}_psnr"] = float(psnr_per_sample(prediction, target).sum())
                     values[f"{stage}_ssim"] = float(ssim_per_sample(prediction, target).sum())
                 sums += torch.tensor([values[name] for name in names] + [n], dtype=torch.float64)
         sums = all_reduce_sum(sums.to(self._reduce_device), self.dist).cpu()

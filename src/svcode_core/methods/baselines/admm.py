@@ -4,7 +4,7 @@ Solves
 
     min_x  ½‖A x − y‖² + λ TV(x)   subject to  x ≥ 0
 
-with ``A`` the complete CM² forward model (:class:`~svcode_core.cm2.CM2Operator`: nine
+with ``A`` the complete CM² forward model (:class:`~svcode_core.physics.cm2.CM2Operator`: nine
 low-rank SV lens blurs, placement at the chief rays, sensor truncation), ``y`` the
 zero-padded raw frame and ``TV`` the isotropic total variation with forward differences
 (Neumann boundary). Torch throughout, so it runs on CUDA as well as on the CPU.
@@ -43,10 +43,10 @@ working range within about 40 iterations.
 The returned estimate is ``z₃`` (exactly non-negative). The objective is recorded every
 iteration at the ``x`` iterate (cheap: ``A x`` is known).
 
-Per-preset settings (:data:`PRESET_SETTINGS`): for ``cm2-mini`` ``λ = 1e-4`` from a sweep
+Settings (:func:`settings_for`, the same for every system): ``λ = 1e-4`` from a sweep
 ``λ ∈ {1e-5, 1e-4}`` on three benchmark scenes at 80 iterations (objects in ``[0, 1]``,
 default sensor noise; the two agree within 0.05 dB, the data term dominates at this noise
-level), ``ρ = 0.1`` where the adaptive ``ρ`` settles on those scenes;
+level) on ``cm2-mini``, ``ρ = 0.1`` where the adaptive ``ρ`` settles on those scenes;
 ``cm2-v2`` uses the same values (‖A‖ ≈ 3 × mean transmission at both scales, since
 every PSF is normalised to the lens's transmission), not separately tuned.
 """
@@ -59,12 +59,11 @@ from dataclasses import dataclass, field
 
 import torch
 
-from ..cm2 import CM2Operator
-from ..config import SystemConfig
-from ..geometry import crop_to_sensor, pad_sensor_frame
+from ...config import SystemConfig
+from ...physics.cm2 import CM2Operator
+from ...physics.geometry import crop_to_sensor, pad_sensor_frame
 
 __all__ = [
-    "PRESET_SETTINGS",
     "AdmmResult",
     "AdmmSettings",
     "LsvAdmm",
@@ -92,15 +91,10 @@ class AdmmSettings:
     check_every: int = 10
 
 
-PRESET_SETTINGS = {
-    "cm2-mini": AdmmSettings(),
-    "cm2-v2": AdmmSettings(),
-}
-
-
 def settings_for(system: SystemConfig) -> AdmmSettings:
-    """The settings of ``system``'s preset (``cm2-mini``'s for other systems)."""
-    return PRESET_SETTINGS.get(system.name, PRESET_SETTINGS["cm2-mini"])
+    """The settings for ``system``: those tuned on ``cm2-mini``, for every system (see the
+    module docstring)."""
+    return AdmmSettings()
 
 
 @dataclass

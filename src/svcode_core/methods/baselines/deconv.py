@@ -41,8 +41,8 @@ import math
 import torch
 from scipy.fft import next_fast_len
 
-from ..cm2 import CM2Operator
-from ..geometry import extract_sub_views, pad_sensor_frame
+from ...physics.cm2 import CM2Operator
+from ...physics.geometry import extract_sub_views, pad_sensor_frame
 
 __all__ = [
     "ShiftInvariantDeconvolution",

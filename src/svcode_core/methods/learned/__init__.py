@@ -1,4 +1,8 @@
-"""The learned SV baselines of the paper: MultiWienerNet and SV-FourierNet (design.md §4)."""
+"""The learned SV baselines: MultiWienerNet and SV-FourierNet (design.md §4).
+
+The models, their configurations and filter banks; reconstructing raw frames with a
+trained one is :class:`~svcode_core.methods.learned.reconstruct.LearnedReconstructor`.
+"""
 
 from .config import FourierNetConfig, MultiWienerConfig
 from .filters import (
@@ -10,15 +14,12 @@ from .filters import (
     place_kernel,
     wiener_gain,
 )
-from .models import MultiWienerNet, RefinementNet, SVFourierNet
-from .reconstruct import ARCHITECTURES, LearnedReconstructor, LearnedSpec
+from .models import LEARNED_MODELS, MultiWienerNet, RefinementNet, SVFourierNet
 
 __all__ = [
-    "ARCHITECTURES",
+    "LEARNED_MODELS",
     "FourierFilterBank",
     "FourierNetConfig",
-    "LearnedReconstructor",
-    "LearnedSpec",
     "MultiWienerConfig",
     "MultiWienerNet",
     "RefinementNet",

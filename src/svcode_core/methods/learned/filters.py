@@ -8,7 +8,7 @@ result. Conventions:
   padded frame, and the **object window** is the ``S × S`` crop whose pixel ``S // 2``
   sits at ``o``.
 * A frame-sized kernel is stored with ``o`` moved to index ``(0, 0)``. Lens ``ℓ`` images
-  object pixel ``S // 2 + r`` around ``c_ℓ + r`` (:mod:`svcode_core.cm2`), so a lens kernel
+  object pixel ``S // 2 + r`` around ``c_ℓ + r`` (:mod:`svcode_core.physics.cm2`), so a lens kernel
   placed at offset ``c_ℓ − o`` (:func:`lens_offsets`) maps the object, embedded at the
   object window, onto that lens's image: deconvolving with it brings the lens image back
   to the object window.
@@ -23,9 +23,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..cm2 import CM2Operator
-from ..config import N_LENSES, SystemConfig
-from ..lowrank import decompose_psfs
+from ...config import N_LENSES, SystemConfig
+from ...physics.cm2 import CM2Operator
+from ...physics.lowrank import decompose_psfs
 
 __all__ = [
     "FourierFilterBank",
@@ -73,7 +73,7 @@ def frame_psf_basis(operator: CM2Operator, rank: int) -> torch.Tensor:
     The PSF of an object point on the sensor is the nine lens spots together. Each lens's
     PSF grid is rebuilt from the operator's low-rank model (``Σ_k W_{ℓ,k}[g] h_{ℓ,k}``), the
     nine grids are stacked spot by spot and decomposed jointly
-    (:func:`~svcode_core.lowrank.decompose_psfs`), and basis PSF ``k`` is the sum of its
+    (:func:`~svcode_core.physics.lowrank.decompose_psfs`), and basis PSF ``k`` is the sum of its
     nine lens parts placed at the lens offsets (:func:`lens_offsets`).
 
     Parameters

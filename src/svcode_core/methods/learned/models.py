@@ -1,7 +1,7 @@
 """The learned SV baselines of the paper: MultiWienerNet and SV-FourierNet.
 
 Both map zero-padded sensor frames ``(B, H_pad, W_pad)`` (what
-:func:`~svcode_core.geometry.pad_sensor_frame` makes of raw frames) to reconstructions
+:func:`~svcode_core.physics.geometry.pad_sensor_frame` makes of raw frames) to reconstructions
 ``(B, 1, S, S)``: a bank of frame-sized filters (:mod:`.filters`), the object window of
 every filtered frame, and a refinement U-Net of plain NAF blocks (the SV-CoDe U-Net
 without coordinate gates) that fuses the channels into one image. Like SV-CoDe's
@@ -24,10 +24,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ...config import N_LENSES, SystemConfig
+from ...network import ModelConfig, UNet
+from ...physics.cm2 import CM2Operator
 from ..baselines.deconv import unit_centre_psfs
-from ..cm2 import CM2Operator
-from ..config import N_LENSES, SystemConfig
-from ..network import ModelConfig, UNet
 from .config import FourierNetConfig, MultiWienerConfig, _BaselineConfig
 from .filters import (
     FourierFilterBank,
@@ -40,7 +40,7 @@ from .filters import (
     wiener_gain,
 )
 
-__all__ = ["MultiWienerNet", "RefinementNet", "SVFourierNet"]
+__all__ = ["LEARNED_MODELS", "MultiWienerNet", "RefinementNet", "SVFourierNet"]
 
 
 class RefinementNet(nn.Module):
@@ -112,6 +112,8 @@ class MultiWienerNet(_FilterNet):
         overwritten by loaded weights). :meth:`from_operator` starts from the physics.
     """
 
+    config_class = MultiWienerConfig
+
     def __init__(
         self, config: MultiWienerConfig, system: SystemConfig, psfs: torch.Tensor | None = None
     ) -> None:
@@ -142,6 +144,8 @@ class SVFourierNet(_FilterNet):
         :meth:`from_operator` starts from the per-view Wiener filters.
     """
 
+    config_class = FourierNetConfig
+
     def __init__(
         self, config: FourierNetConfig, system: SystemConfig, gains: torch.Tensor | None = None
     ) -> None:
@@ -167,3 +171,9 @@ class SVFourierNet(_FilterNet):
         )
         gains = wiener_gain(placed, initial_regularisation(placed, config.balance))
         return cls(config, system, gains)
+
+
+#: the learned baselines' model classes by name (the ``architecture`` of their model files)
+LEARNED_MODELS: dict[str, type[_FilterNet]] = {
+    cls.__name__: cls for cls in (MultiWienerNet, SVFourierNet)
+}
