@@ -10,14 +10,8 @@ import torch
 from safetensors.torch import save_file
 
 from svcode_core.config import SystemConfig
-from svcode_core.network import (
-    ModelConfig,
-    ReconNet,
-    SVCoDe,
-    load_model,
-    read_model_metadata,
-    save_model,
-)
+from svcode_core.methods.model_file import load_model, read_model_metadata, save_model
+from svcode_core.network import ModelConfig, ReconNet, SVCoDe
 
 TINY = ModelConfig(
     width=4,

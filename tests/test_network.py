@@ -9,7 +9,6 @@ import pytest
 import torch
 
 from svcode_core.config import ConfigError
-from svcode_core.geometry import normalized_coordinates
 from svcode_core.network import (
     DemixNet,
     ModelConfig,
@@ -18,6 +17,7 @@ from svcode_core.network import (
     level_coordinates,
     positional_encoding,
 )
+from svcode_core.physics.geometry import normalized_coordinates
 
 TINY = ModelConfig(
     width=4,

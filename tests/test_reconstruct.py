@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from svcode_core.geometry import extract_sub_views, pad_sensor_frame
-from svcode_core.reconstruct import FrameProgress, Reconstructor
-from svcode_core.tiling import Cancelled
+from svcode_core.methods.base import FrameProgress
+from svcode_core.methods.svcode import Reconstructor
+from svcode_core.methods.tiling import Cancelled
+from svcode_core.physics.geometry import extract_sub_views, pad_sensor_frame
 
 
 class IdentityModel(torch.nn.Module):

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from svcode_core.phantoms import make_object
-from svcode_core.registration import register_frame
-from svcode_core.simulate import Simulator
+from svcode_core.physics.registration import register_frame
+from svcode_core.physics.simulate import Simulator
 
 
 def test_register_frame_reports_offsets_relative_to_the_reference(tiny_system):

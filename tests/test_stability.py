@@ -9,12 +9,12 @@ import pytest
 import torch
 from test_cm2 import gaussian_psfs
 
-from svcode_core.baselines import METHODS, BaselineReconstructor, reconstruct_with_baseline
-from svcode_core.baselines.admm import LsvAdmm
-from svcode_core.cm2 import CM2Operator
-from svcode_core.config import OpticsConfig, SystemConfig, _system_from_scale
-from svcode_core.metrics import psnr
-from svcode_core.noise import apply_sensor_noise
+from svcode_core.config import OpticsConfig, SystemConfig, system_from_scale
+from svcode_core.evaluation.metrics import psnr
+from svcode_core.methods.baselines import METHODS, BaselineReconstructor, reconstruct_with_baseline
+from svcode_core.methods.baselines.admm import LsvAdmm
+from svcode_core.physics.cm2 import CM2Operator
+from svcode_core.physics.noise import apply_sensor_noise
 
 OPTIONS = {"admm": {"iterations": 100}, "wiener": {}, "rl": {"iterations": 30}}
 
@@ -38,7 +38,7 @@ def run_all(system, op, raw):
 
 def test_rho_across_six_decades_reaches_the_same_minimum():
     optics = OpticsConfig(psf_grid=3, kernel_size=5, airy_radius=1.0, pupil_samples=16)
-    system = _system_from_scale("micro", (20, 28), 16, 6, 8, optics, 1e-2).validate()
+    system = system_from_scale("micro", (20, 28), 16, 6, 8, optics, 1e-2).validate()
     op = CM2Operator.from_psfs(system, gaussian_psfs(system), dtype=torch.float64)
     frame = op.forward(disc(16).double())
     frame = apply_sensor_noise(frame, system.noise, torch.Generator().manual_seed(0))
@@ -60,7 +60,7 @@ def test_near_singular_operator():
     """K = 1, vignetting down to 1e-3 at the field edge, sensor a third of the padded frame."""
     base = SystemConfig.preset("cm2-mini")
     optics = base.optics.__class__(psf_grid=3, kernel_size=9, airy_radius=1.0, pupil_samples=32)
-    system = _system_from_scale("stiff", (28, 28), 48, 18, 16, optics, 1e-2).validate()
+    system = system_from_scale("stiff", (28, 28), 48, 18, 16, optics, 1e-2).validate()
     psfs = gaussian_psfs(system)
     coords = np.linspace(-1, 1, 3)
     edge = np.array([max(abs(v), abs(u)) for v in coords for u in coords])
@@ -171,9 +171,9 @@ def test_non_finite_frames_raise(tiny_system, op):
 def test_network_battery(tiny_system, tiny_weights):
     """The battery of bench/stability.py through a small random SV-CoDe model of the tiny
     system: every case finite (and bounded) or a clear error."""
-    from svcode_core.reconstruct import Reconstructor
-    from svcode_core.simulate import Simulator
-    from svcode_core.stability import run_case, stability_cases
+    from svcode_core.evaluation.stability import run_case, stability_cases
+    from svcode_core.methods.svcode import Reconstructor
+    from svcode_core.physics.simulate import Simulator
 
     def build(precision, skip_empty):
         return Reconstructor.from_weights(tiny_weights, precision=precision,
