@@ -136,7 +136,7 @@ def test_memory_budget_chunks_lenses_and_components_unevenly(tiny_system, dtype,
 
 def test_simulation_cost_names_the_rank_and_grows_with_the_field(tiny_system):
     small = simulation_cost(tiny_system)
-    assert small.rank == CM2Operator.from_system(tiny_system).rank_report().ranks[0]
+    assert small.rank == CM2Operator.from_system(tiny_system).decompositions[0].rank
     assert simulation_cost(tiny_system.replace(rank=3)).rank == 3
     assert small.memory > 0 and small.seconds > 0
     double = tiny_system.replace(sub_view_size=2 * tiny_system.sub_view_size)

@@ -166,17 +166,6 @@ class ModelConfig(BlockConfig):
             mask_spacing=8,
         ).validate()
 
-    # ------------------------------------------------------------------ derived
-    @property
-    def demix_levels(self) -> int:
-        """Down-sampling steps of the Demixing-Net U-Net."""
-        return len(self.demix_enc_blocks)
-
-    @property
-    def recon_levels(self) -> int:
-        """Down-sampling steps of the Recon-Net U-Net."""
-        return len(self.recon_enc_blocks)
-
     def replace(self, **changes: Any) -> ModelConfig:
         """A validated copy with some fields changed."""
         return dataclasses.replace(self, **changes).validate()

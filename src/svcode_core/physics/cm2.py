@@ -24,14 +24,6 @@ from .lowrank import LowRankSVOperator, PSFDecomposition, decompose_psfs, fft_sh
 __all__ = ["CM2Operator", "SimulationCost", "simulation_cost"]
 
 
-@dataclass(frozen=True)
-class RankReport:
-    """Low-rank order and captured PSF energy of each lens."""
-
-    ranks: tuple[int, ...]
-    captured_energy: tuple[float, ...]
-
-
 class CM2Operator:
     """Linear forward model of a CM² instrument, with its exact adjoint.
 
@@ -146,13 +138,6 @@ class CM2Operator:
     def rank(self) -> int:
         """Low-rank order ``K`` (the largest over lenses)."""
         return self.lenses.rank
-
-    def rank_report(self) -> RankReport:
-        """Rank and captured PSF energy of every lens."""
-        return RankReport(
-            ranks=tuple(d.rank for d in self.decompositions),
-            captured_energy=tuple(d.energy_fraction for d in self.decompositions),
-        )
 
     # ---------------------------------------------------------------- algebra
     def _check_object(self, x: torch.Tensor) -> None:
