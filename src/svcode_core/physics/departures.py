@@ -38,6 +38,8 @@ from ..config import (
     JsonFile,
     SystemConfig,
     _build,
+    check_int,
+    check_number,
     parse_json,
     read_text,
 )
@@ -88,26 +90,6 @@ def _differs(departures: Departures, fields: tuple[str, ...]) -> bool:
 
 def _fail(name: str, message: str) -> None:
     raise ConfigError(f"departures.{name}: {message}")
-
-
-def _number(name: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        _fail(name, f"must be a finite number, got {value!r}")
-    return float(value)
-
-
-def _at_least(name: str, value: Any, low: float, strict: bool = False) -> None:
-    number = _number(name, value)
-    if number < low or (strict and number == low):
-        _fail(name, f"must be {'>' if strict else '>='} {low:g}, got {value!r}")
-
-
-def _integer(name: str, value: Any, low: int, high: int | None = None) -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        _fail(name, f"must be an integer, got {value!r}")
-    if value < low or (high is not None and value > high):
-        bound = f"in {low}..{high}" if high is not None else f">= {low}"
-        _fail(name, f"must be {bound}, got {value}")
 
 
 @dataclass(frozen=True)
@@ -211,39 +193,40 @@ class Departures(JsonFile):
         """
         if not isinstance(self.name, str) or not self.name:
             _fail("name", f"must be a non-empty string, got {self.name!r}")
-        _integer("seed", self.seed, 0)
+        check_int("departures.seed", self.seed, 0)
         shift = self.mla_shift_px
         if not isinstance(shift, (tuple, list)) or len(shift) != 2:
             _fail("mla_shift_px", f"must be a (row, col) pair, got {shift!r}")
         for value in shift:
-            _number("mla_shift_px", value)
-        rotation = _number("mla_rotation_deg", self.mla_rotation_deg)
+            check_number("departures.mla_shift_px", value)
+        rotation = check_number("departures.mla_rotation_deg", self.mla_rotation_deg)
         if abs(rotation) >= 45:
             _fail("mla_rotation_deg", f"must lie in (-45, 45) degrees, got {rotation!r}")
         for name in _SIGNED:
-            _number(name, getattr(self, name))
+            check_number(f"departures.{name}", getattr(self, name))
         for name in ("lens_jitter_px", "depth_spread_waves", "background_fraction",
                      "hot_pixel_e", "prnu_percent", "dsnu_e"):  # fmt: skip
-            _at_least(name, getattr(self, name), 0.0)
-        _at_least("background_width_px", self.background_width_px, 0.0, strict=True)
-        fraction = _number("hot_pixel_fraction", self.hot_pixel_fraction)
+            check_number(f"departures.{name}", getattr(self, name), 0.0)
+        check_number("departures.background_width_px", self.background_width_px, 0.0, strict=True)
+        fraction = check_number("departures.hot_pixel_fraction", self.hot_pixel_fraction)
         if not 0 <= fraction <= 1:
             _fail("hot_pixel_fraction", f"must lie in [0, 1], got {fraction!r}")
         if self.prnu_percent >= 100:
             _fail("prnu_percent", f"must be < 100, got {self.prnu_percent!r}")
         if self.truth_psf_grid is not None:
-            _integer("truth_psf_grid", self.truth_psf_grid, 2)
+            check_int("departures.truth_psf_grid", self.truth_psf_grid, 2)
         if self.truth_rank_tolerance is not None:
-            _at_least("truth_rank_tolerance", self.truth_rank_tolerance, 0.0, strict=True)
+            check_number("departures.truth_rank_tolerance", self.truth_rank_tolerance, 0.0,
+                         strict=True)
             if self.truth_rank_tolerance >= 1:
                 _fail("truth_rank_tolerance", f"must be < 1, got {self.truth_rank_tolerance}")
         for name in ("photons", "full_well_e"):
             if getattr(self, name) is not None:
-                _at_least(name, getattr(self, name), 0.0, strict=True)
+                check_number(f"departures.{name}", getattr(self, name), 0.0, strict=True)
         if self.read_noise_e is not None:
-            _at_least("read_noise_e", self.read_noise_e, 0.0)
+            check_number("departures.read_noise_e", self.read_noise_e, 0.0)
         if self.adc_bits is not None:
-            _integer("adc_bits", self.adc_bits, 1, 24)
+            check_int("departures.adc_bits", self.adc_bits, 1, 24)
         return self
 
     # --------------------------------------------------------------- queries

@@ -5,8 +5,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from ...config import ConfigError
-from ...network.config import BlockConfig, check_int
+from ...config import ConfigError, check_int
+from ...network.config import BlockConfig
 
 __all__ = ["FourierNetConfig", "MultiWienerConfig"]
 
