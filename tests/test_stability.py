@@ -11,8 +11,9 @@ from test_cm2 import gaussian_psfs
 
 from svcode_core.config import OpticsConfig, SystemConfig, system_from_scale
 from svcode_core.evaluation.metrics import psnr
-from svcode_core.methods.baselines import METHODS, BaselineReconstructor, reconstruct_with_baseline
+from svcode_core.methods.baselines import BaselineReconstructor, reconstruct_with_baseline
 from svcode_core.methods.baselines.admm import LsvAdmm
+from svcode_core.methods.registry import MODEL_BASED_METHODS
 from svcode_core.physics.cm2 import CM2Operator
 from svcode_core.physics.noise import apply_sensor_noise
 
@@ -32,7 +33,8 @@ def disc(size, value=0.6):
 
 def run_all(system, op, raw):
     return {
-        m: reconstruct_with_baseline(m, raw, system, operator=op, **OPTIONS[m]) for m in METHODS
+        m: reconstruct_with_baseline(m, raw, system, operator=op, **OPTIONS[m])
+        for m in MODEL_BASED_METHODS
     }
 
 
@@ -142,14 +144,14 @@ def test_single_pixel_object(tiny_system, op):
 
 @pytest.mark.parametrize("precision", ["bf16", "fp16"])
 def test_half_precision_is_refused_clearly(tiny_system, precision):
-    for method in METHODS:
+    for method in MODEL_BASED_METHODS:
         with pytest.raises(ValueError, match=f"{precision} is not supported"):
             BaselineReconstructor(method, tiny_system, precision=precision)
 
 
 def test_half_precision_input_is_converted(tiny_system, op):
     raw = op.measure(disc(tiny_system.sub_view_size)).numpy()
-    for method in METHODS:
+    for method in MODEL_BASED_METHODS:
         full = reconstruct_with_baseline(method, raw, tiny_system, operator=op, **OPTIONS[method])
         half = reconstruct_with_baseline(
             method, raw.astype(np.float16), tiny_system, operator=op, **OPTIONS[method]
@@ -162,7 +164,7 @@ def test_half_precision_input_is_converted(tiny_system, op):
 def test_non_finite_frames_raise(tiny_system, op):
     raw = np.zeros(tiny_system.sensor_shape, dtype=np.float32)
     raw[3, 4] = np.inf
-    for method in METHODS:
+    for method in MODEL_BASED_METHODS:
         with pytest.raises(ValueError, match="NaN or Inf"):
             reconstruct_with_baseline(method, raw, tiny_system, operator=op)
 

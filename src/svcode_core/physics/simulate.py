@@ -104,10 +104,12 @@ class Simulator:
 
     Examples
     --------
-    >>> sim = Simulator(SystemConfig.preset("cm2-mini"))          # doctest: +SKIP
-    >>> scene = sim.simulate(np.zeros((384, 384)), seed=0)         # doctest: +SKIP
-    >>> scene.measurement.shape                                     # doctest: +SKIP
-    (480, 640)
+    >>> from svcode_core.config import OpticsConfig, system_from_scale
+    >>> tiny = system_from_scale("tiny", (60, 80), 48, 18, 16, OpticsConfig(psf_grid=3,
+    ...                          kernel_size=9), 1e-2)  # sensor 60 × 80, sub-views 48 × 48
+    >>> scene = Simulator(tiny).simulate(np.zeros((48, 48)), seed=0)
+    >>> scene.measurement.shape, scene.views.shape
+    ((60, 80), (9, 48, 48))
     """
 
     def __init__(

@@ -182,9 +182,11 @@ class Trainer:
 
     Examples
     --------
-    >>> trainer = Trainer(TrainingData("data"), "run", ModelConfig.mini(),
-    ...                   TrainConfig(epochs=3))                        # doctest: +SKIP
-    >>> history = trainer.fit()                                         # doctest: +SKIP
+    Three epochs of the ``mini`` network on a dataset written by ``svcode dataset``
+    (see ``tests/test_training.py`` for a run on a tiny system)::
+
+        trainer = Trainer(TrainingData("data"), "run", ModelConfig.mini(), TrainConfig(epochs=3))
+        trainer.fit()
     """
 
     def __init__(
