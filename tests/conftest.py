@@ -5,14 +5,25 @@ from __future__ import annotations
 import pytest
 import torch
 
-from svcode_core.config import OpticsConfig, SystemConfig, system_from_scale
+from svcode_core.config import SystemConfig
 from svcode_core.network import ModelConfig
 
 torch.set_num_threads(min(2, torch.get_num_threads()))
 
-#: optics of the tiny system: a 3 × 3 PSF grid of 9-pixel kernels
-TINY_OPTICS = OpticsConfig(psf_grid=3, kernel_size=9, airy_radius=1.0, pupil_samples=32,
-                           distortion=0.5)  # fmt: skip
+
+@pytest.fixture(scope="session")
+def drain():
+    """Run a progress generator to its end: ``drain(generator) -> (yielded, returned)``."""
+
+    def run(generator):
+        yielded = []
+        while True:
+            try:
+                yielded.append(next(generator))
+            except StopIteration as stop:
+                return yielded, stop.value
+
+    return run
 
 
 @pytest.fixture(scope="session")
@@ -24,9 +35,7 @@ def mini_system() -> SystemConfig:
 @pytest.fixture(scope="session")
 def tiny_system() -> SystemConfig:
     """A 48-pixel sub-view system with a 9-pixel kernel, for fast end-to-end tests."""
-    return system_from_scale("tiny", sensor_shape=(60, 80), sub_view_size=48, pitch=18,
-                             patch_size=16, optics=TINY_OPTICS,
-                             rank_tolerance=1e-2).validate()  # fmt: skip
+    return SystemConfig.tiny()
 
 
 @pytest.fixture(scope="session")
@@ -35,6 +44,14 @@ def tiny_model_config() -> ModelConfig:
     return ModelConfig(width=4, view_width=2, demix_enc_blocks=(1,), demix_dec_blocks=(1,),
                        recon_enc_blocks=(1,), recon_dec_blocks=(1,), mlp_hidden=8,
                        pe_bands=2).validate()  # fmt: skip
+
+
+@pytest.fixture(scope="session")
+def two_level_model_config(tiny_model_config) -> ModelConfig:
+    """``tiny_model_config`` with a second Demixing-Net level and the default encoding
+    bands: masks at two U-Net levels."""
+    return tiny_model_config.replace(demix_enc_blocks=(1, 1), demix_dec_blocks=(1, 1),
+                                     pe_bands=ModelConfig().pe_bands)  # fmt: skip
 
 
 @pytest.fixture

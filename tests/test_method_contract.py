@@ -56,7 +56,7 @@ def _frames(system, count: int) -> np.ndarray:
 
 
 @pytest.mark.parametrize("name", registry.METHODS)
-def test_frames_in_a_result_out(name, tiny_system, weights):
+def test_frames_in_a_result_out(name, tiny_system, weights, drain):
     spec = _spec(name, tiny_system, weights)
     reconstructor = pickle.loads(pickle.dumps(spec))()
     assert isinstance(reconstructor, BaseReconstructor) and reconstructor.method == name
@@ -72,13 +72,7 @@ def test_frames_in_a_result_out(name, tiny_system, weights):
     assert single.timings["total"] > 0
     assert single.tiles_total == single.tiles_run + single.tiles_skipped
 
-    progress, generator = [], reconstructor.iter_reconstruct(stack)
-    while True:
-        try:
-            progress.append(next(generator))
-        except StopIteration as stop:
-            result = stop.value
-            break
+    progress, result = drain(reconstructor.iter_reconstruct(stack))
     assert result.reconstruction.shape == (2, size, size)
     assert all(isinstance(p, FrameProgress) and p.frames == 2 for p in progress)
     assert {p.frame for p in progress} == {0, 1}

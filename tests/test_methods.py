@@ -49,17 +49,10 @@ def test_a_named_baseline_matches_its_reconstructor(tiny_system):
                       BaselineReconstructor)
 
 
-def test_iter_method_yields_progress_for_any_method(tiny_system, tiny_model_config):
+def test_iter_method_yields_progress_for_any_method(tiny_system, tiny_model_config, drain):
     stack = _frames(tiny_system, 2)
     rl = build_reconstructor("rl", tiny_system, iterations=2)
-    steps = iter_method(rl, stack, return_views=True)
-    progress = []
-    while True:
-        try:
-            progress.append(next(steps))
-        except StopIteration as stop:
-            result = stop.value
-            break
+    progress, result = drain(iter_method(rl, stack, return_views=True))
     assert progress == [FrameProgress(0, 2, 0, 1), FrameProgress(1, 2, 0, 1)]
     expected = rl.reconstruct(stack, return_views=True)
     np.testing.assert_allclose(result.reconstruction, expected.reconstruction, atol=1e-6)

@@ -422,6 +422,21 @@ class SystemConfig(JsonFile):
 
     # ----------------------------------------------------------------- presets
     @classmethod
+    def tiny(cls) -> SystemConfig:
+        """A small system for examples and tests, not an instrument: a 60 × 80 sensor,
+        48-pixel sub-views, 9-pixel kernels on a 3 × 3 PSF grid (fast to simulate).
+
+        Examples
+        --------
+        >>> tiny = SystemConfig.tiny()
+        >>> tiny.sensor_shape, tiny.sub_view_size, tiny.padded_shape
+        ((60, 80), 48, (84, 84))
+        """
+        optics = OpticsConfig(psf_grid=3, kernel_size=9, airy_radius=1.0, pupil_samples=32,
+                              distortion=0.5)  # fmt: skip
+        return system_from_scale("tiny", (60, 80), 48, 18, 16, optics, 1e-2).validate()
+
+    @classmethod
     def preset(cls, name: str) -> SystemConfig:
         """A named preset: ``"cm2-v2"`` (paper scale) or ``"cm2-mini"`` (CPU scale).
 

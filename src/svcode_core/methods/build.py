@@ -187,11 +187,11 @@ def reconstruct_with_method(
     --------
     >>> import numpy as np
     >>> from svcode_core.config import SystemConfig
-    >>> system = SystemConfig.preset("cm2-mini")
+    >>> system = SystemConfig.tiny()
     >>> frame = np.full(system.sensor_shape, 0.1, dtype=np.float32)
     >>> result = reconstruct_with_method("wiener", frame, system, rank=1)
     >>> result.reconstruction.shape
-    (384, 384)
+    (48, 48)
     """
     reconstructor = build_reconstructor(method, system, **options)
     return reconstructor.reconstruct(frames, return_views)

@@ -166,9 +166,8 @@ class Reconstructor(BaseReconstructor):
     A trained model comes from a file (``Reconstructor.from_weights(path, device="cuda")``)
     or with the package (:meth:`pretrained`); here an untrained one on a small system:
 
-    >>> from svcode_core.config import OpticsConfig, system_from_scale
-    >>> tiny = system_from_scale("tiny", (60, 80), 48, 18, 16, OpticsConfig(psf_grid=3,
-    ...                          kernel_size=9), 1e-2)  # sensor 60 × 80, sub-views 48 × 48
+    >>> from svcode_core.config import SystemConfig
+    >>> tiny = SystemConfig.tiny()  # sensor 60 × 80, sub-views 48 × 48
     >>> from svcode_core.network import ModelConfig, SVCoDe
     >>> rec = Reconstructor(SVCoDe(ModelConfig.mini()), tiny)
     >>> result = rec(np.full((60, 80), 0.1, dtype=np.float32))

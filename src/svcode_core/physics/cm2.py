@@ -41,9 +41,8 @@ class CM2Operator:
 
     Examples
     --------
-    >>> from svcode_core.config import OpticsConfig, system_from_scale
-    >>> tiny = system_from_scale("tiny", (60, 80), 48, 18, 16, OpticsConfig(psf_grid=3,
-    ...                          kernel_size=9), 1e-2)  # sensor 60 × 80, sub-views 48 × 48
+    >>> from svcode_core.config import SystemConfig
+    >>> tiny = SystemConfig.tiny()  # sensor 60 × 80, sub-views 48 × 48
     >>> op = CM2Operator.from_system(tiny)
     >>> op.forward(torch.rand(48, 48, dtype=op.lenses.dtype)).shape  # the padded frame
     torch.Size([84, 84])

@@ -104,9 +104,8 @@ class Simulator:
 
     Examples
     --------
-    >>> from svcode_core.config import OpticsConfig, system_from_scale
-    >>> tiny = system_from_scale("tiny", (60, 80), 48, 18, 16, OpticsConfig(psf_grid=3,
-    ...                          kernel_size=9), 1e-2)  # sensor 60 × 80, sub-views 48 × 48
+    >>> from svcode_core.config import SystemConfig
+    >>> tiny = SystemConfig.tiny()  # sensor 60 × 80, sub-views 48 × 48
     >>> scene = Simulator(tiny).simulate(np.zeros((48, 48)), seed=0)
     >>> scene.measurement.shape, scene.views.shape
     ((60, 80), (9, 48, 48))

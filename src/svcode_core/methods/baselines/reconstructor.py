@@ -180,9 +180,8 @@ def reconstruct_with_baseline(
 
     Examples
     --------
-    >>> from svcode_core.config import OpticsConfig, system_from_scale
-    >>> tiny = system_from_scale("tiny", (60, 80), 48, 18, 16, OpticsConfig(psf_grid=3,
-    ...                          kernel_size=9), 1e-2)  # sensor 60 × 80, sub-views 48 × 48
+    >>> from svcode_core.config import SystemConfig
+    >>> tiny = SystemConfig.tiny()  # sensor 60 × 80, sub-views 48 × 48
     >>> frame = np.random.default_rng(0).uniform(0, 0.5, (60, 80))
     >>> reconstruct_with_baseline("rl", frame, tiny, iterations=5).shape
     (48, 48)
