@@ -166,14 +166,12 @@ class MethodPanel(Container):
             values.update(tile_size=self.tile.value or None, skip_empty=self.skip.value)
             if self.batch.value:  # else the core's default
                 values["batch_size"] = self.batch.value
-        elif method in ("admm", "wiener", "rl"):
+        elif method in registry.MODEL_BASED_METHODS:
             values["rank"] = self.rank.value or None
-            if method in ("admm", "rl"):
-                values["iterations"] = self.iterations.value
-            if method == "admm":
-                values["tv_weight"] = self.tv_weight.value
-            if method == "wiener":
-                values.update(balance=self.balance.value, boundary=self.boundary.value)
+            shown = {"iterations": self.iterations, "tv_weight": self.tv_weight,
+                     "balance": self.balance, "boundary": self.boundary}  # fmt: skip
+            values.update({option: shown[option].value
+                           for option in registry.method(method).options if option in shown})
         return values
 
     def weights_path(self, system_name: str | None = None) -> Path | None:
@@ -211,7 +209,7 @@ class MethodPanel(Container):
             detail = f"{tiles:,} tiles" if frames == 1 else (
                 f"{tiles:,} tiles: {per_frame:,} a frame × {frames} frames")
             return Cost(seconds, memory, detail)
-        if method in ("admm", "rl"):
+        if "iterations" in registry.method(method).options:
             iterations = self.iterations.value * frames
             seconds = iterations * SECONDS_PER_ITERATION * (size / 384) ** 2 / speed
             return Cost(seconds, memory, f"{iterations:,} iterations")
