@@ -182,3 +182,25 @@ def test_calibrate_command_and_every_command_uses_the_system(scan, tiny_model_co
     assert main(["bench", "--quick", "--system", calibrated_json, "--methods", "deconvolution",
                  "--regimes", "matched", "--out", str(bench)]) == 0
     assert (bench / "regimes.json").is_file()
+
+
+def test_progress_is_reported_in_order_and_can_stop_the_calibration(scan):
+    system, _, positions, frames, dark, _ = scan
+    calls: list[tuple[str, float]] = []
+    calibrate(frames, positions, system, dark=dark,
+              progress=lambda stage, fraction: calls.append((stage, fraction)))
+    fractions = [fraction for _, fraction in calls]
+    assert fractions == sorted(fractions) and fractions[0] == 0.0 and fractions[-1] == 1.0
+    stages = [stage for stage, _ in calls]
+    assert f"finding spots: frame {len(frames)} of {len(frames)}" in stages
+    assert "fitting the PSFs: lens 9 of 9" in stages
+
+    class Stop(Exception):
+        pass
+
+    def stop_at_the_psfs(stage: str, fraction: float) -> None:
+        if stage.startswith("fitting the PSFs"):
+            raise Stop
+
+    with pytest.raises(Stop):
+        calibrate(frames, positions, system, dark=dark, progress=stop_at_the_psfs)

@@ -191,3 +191,26 @@ def test_unavailable_cuda_is_a_clear_error(tiny_system):
 def test_unavailable_mps_is_a_clear_error(tiny_system):
     with pytest.raises(ValueError, match="MPS"):
         Reconstructor(IdentityModel(), tiny_system, device="mps")
+
+
+def test_moved_chief_rays_cut_the_same_sub_views_for_the_same_model(tiny_system, tiny_weights):
+    """An SV-CoDe model sees sub-views and coordinates relative to them: a system whose
+    chief rays moved, given the frame moved with them, gives the same reconstruction."""
+    from svcode_core.methods.model_file import load_model
+
+    model, _ = load_model(tiny_weights)
+    shift = np.array([2, -3])
+    moved = tiny_system.replace(chief_rays=tuple(
+        (int(r), int(c)) for r, c in np.asarray(tiny_system.chief_rays) + shift))
+    frame = np.zeros(tiny_system.sensor_shape, np.float32)
+    frame[4:-4, 4:-4] = np.random.default_rng(3).random((52, 72), dtype=np.float32)
+    shifted = np.roll(frame, tuple(shift), axis=(0, 1))  # the border is zero: nothing wraps
+    nominal = Reconstructor(model, tiny_system, skip_empty=False)
+    at_moved = Reconstructor(model, moved, skip_empty=False)
+    np.testing.assert_array_equal(at_moved.prepare(shifted), nominal.prepare(frame))
+    expected = nominal.reconstruct(frame, return_views=True)
+    result = at_moved.reconstruct(shifted, return_views=True)
+    np.testing.assert_allclose(result.reconstruction, expected.reconstruction, atol=1e-6)
+    np.testing.assert_allclose(result.views, expected.views, atol=1e-6)
+    # the same frame cut at other rays is another input: the result changes
+    assert not np.allclose(at_moved.reconstruct(frame).reconstruction, expected.reconstruction)

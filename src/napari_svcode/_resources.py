@@ -12,7 +12,8 @@ from svcode_core.methods.model_file import load_model
 from svcode_core.physics.simulate import Simulator
 from svcode_core.pretrained import bundled_weights as bundled_model
 
-__all__ = ["NO_BUNDLED_MODEL", "available_devices", "bundled_model", "cached_model", "simulator"]
+__all__ = ["NO_BUNDLED_MODEL", "PLACEMENT_FIELDS", "available_devices", "bundled_model",
+           "cached_model", "simulator"]
 
 
 @functools.lru_cache(maxsize=4)
@@ -27,18 +28,42 @@ NO_BUNDLED_MODEL = (
 )
 
 
+#: System fields an SV-CoDe model does not depend on. The chief rays only say where the
+#: sub-views are cut; the model sees the sub-views and tile coordinates relative to them.
+PLACEMENT_FIELDS = ("chief_rays",)
+
+
 def cached_model(path: str | Path, system: SystemConfig | None = None):
     """``(model, training system)`` of a model file, loaded once per file version.
 
-    ``system`` (optional) is checked against the model's training system; a model for
-    another system raises :class:`ValueError` listing the differing fields.
+    ``system`` (optional) is checked against the model's training system, except for
+    :data:`PLACEMENT_FIELDS`: the model applies unchanged to a system whose sub-views are
+    cut at other chief rays (a moved sub-view box, calibrated chief rays).
+
+    Raises
+    ------
+    FileNotFoundError
+        No such file.
+    ValueError
+        A model trained for another system: the differing fields first (short enough for
+        a toast), then the full comparison.
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"model file not found: {path}")
     model, stored = _load(str(path.resolve()), path.stat().st_mtime_ns)
-    if system is not None and system != stored:
-        load_model(path, system=system)  # raises, naming the differing fields
+    if system is None:
+        return model, stored
+    placed = system.replace(**{name: getattr(stored, name) for name in PLACEMENT_FIELDS})
+    if placed != stored:
+        given, trained = placed.to_dict(), stored.to_dict()
+        fields = [name for name in sorted(given.keys() | trained.keys())
+                  if given.get(name) != trained.get(name)]
+        try:
+            load_model(path, system=placed)  # raises, naming the differing fields in full
+        except ValueError as err:
+            raise ValueError(f"{path.name} was trained for system {stored.name!r}, which "
+                             f"differs in {', '.join(fields)}; {err}") from None
     return model, stored
 
 

@@ -5,6 +5,9 @@
 # time; about 1 CPU-second per frame), restores the committed resume state into runs/v2 if
 # that folder holds none, and continues training from it.
 set -euo pipefail
+# Threads that wait sleep instead of spinning: on a shared machine spinning cost this run
+# up to twice the CPU time per epoch.
+export OMP_WAIT_POLICY="${OMP_WAIT_POLICY:-PASSIVE}"
 here="$(cd "$(dirname "$0")" && pwd)"
 svcode dataset --preset cm2-mini --frames 480 --out runs/data-v2 --seed 0 \
   --departures "$here/departures.json" --no-progress

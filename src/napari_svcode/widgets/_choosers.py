@@ -7,15 +7,25 @@ from pathlib import Path
 from typing import Any
 
 import napari
+import numpy as np
 from magicgui.widgets import ComboBox, Container, FileEdit
 from napari.layers import Image
 
 from svcode_core.config import ConfigError, SystemConfig, available_presets
+from svcode_core.io import read_tiff
 
-from .._layers import KIND_KEY, layer_system
+from .._layers import KIND_KEY, layer_metadata, layer_system
 from .._resources import NO_BUNDLED_MODEL, bundled_model
 
-__all__ = ["ModelChooser", "SystemChooser", "ground_truth_fit", "image_layer_box", "raw_frame_fit"]
+__all__ = [
+    "LayerOrFile",
+    "ModelChooser",
+    "SystemChooser",
+    "ground_truth_fit",
+    "image_layer_box",
+    "raw_frame_fit",
+    "scan_fit",
+]
 
 
 #: layer kinds that are never a raw frame
@@ -36,6 +46,15 @@ def raw_frame_fit(layer: Any) -> int:
     if system is None:
         return 1
     return 2 if tuple(layer.data.shape[-2:]) == tuple(system.sensor_shape) else 0
+
+
+def scan_fit(layer: Any) -> int:
+    """How well ``layer`` fits as a point-source scan: 2 a layer read from a scan TIFF,
+    1 another grey frame stack (``N × H × W``) that is not on the object grid, else 0."""
+    if not isinstance(layer, Image) or layer.rgb or layer.ndim != 3:
+        return 0
+    kind = layer.metadata.get(KIND_KEY)
+    return 2 if kind == "scan" else int(kind not in NOT_RAW)
 
 
 def ground_truth_fit(layer: Any) -> int:
@@ -148,3 +167,45 @@ class ModelChooser(Container):
         if not path.is_file():
             raise ValueError(f"model file not found: {path}; choose a .safetensors model file")
         return path
+
+
+class LayerOrFile(Container):
+    """Image data from an open layer or, when no layer is chosen, from a TIFF file.
+
+    ``label`` names both choices (``"<label> layer"``, ``"<label> file"``) and is the data
+    kind recorded for a file that records none (see :func:`~napari_svcode._layers.layer_metadata`).
+    """
+
+    def __init__(self, viewer: napari.viewer.Viewer, label: str,
+                 fit: Callable[[Any], int] | None = None, tooltip: str | None = None) -> None:
+        self.kind = label
+        self.layer = image_layer_box(viewer, f"{label} layer", fit=fit, nullable=True,
+                                     tooltip=tooltip)
+        self.path = FileEdit(label=f"{label} file", mode="r", filter="*.tif *.tiff",
+                             tooltip="a TIFF file, read when no layer is chosen above")
+        super().__init__(widgets=[self.layer, self.path], labels=True)
+        self.margins = (0, 0, 0, 0)
+
+    def read(self) -> tuple[np.ndarray, dict[str, Any], str, Image | None] | None:
+        """``(data, layer metadata, name, layer)`` of the chosen layer, else of the chosen
+        file (``layer`` is then ``None``); ``None`` when neither is chosen.
+
+        Raises
+        ------
+        FileNotFoundError, ValueError
+            A chosen file that does not exist or is not a readable TIFF.
+        """
+        layer = self.layer.value
+        if layer is not None:
+            return np.asarray(layer.data), dict(layer.metadata), layer.name, layer
+        if str(self.path.value) in ("", "."):
+            return None
+        path = Path(self.path.value)
+        if not path.is_file():
+            raise FileNotFoundError(f"file not found: {path}")
+        try:
+            data, system, meta = read_tiff(path)
+        except (OSError, ValueError) as err:  # tifffile raises both for a non-TIFF file
+            raise ValueError(f"{path.name} is not a readable TIFF ({err})") from err
+        return np.asarray(data), layer_metadata(system, meta.get("kind") or self.kind), \
+            path.name.split(".")[0], None

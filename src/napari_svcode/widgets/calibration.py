@@ -1,34 +1,96 @@
-"""Calibration dock widget: chief rays over the raw frame and one sub-view box, editable."""
+"""Calibration dock widget: chief rays over the raw frame and one sub-view box, editable;
+a calibration from a point-source scan, run in a worker thread."""
 
 from __future__ import annotations
 
+import threading
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import napari
 import numpy as np
-from magicgui.widgets import Container, FileEdit, PushButton, SpinBox
+from magicgui.widgets import (
+    Container,
+    FileEdit,
+    FloatSpinBox,
+    Label,
+    ProgressBar,
+    PushButton,
+    SpinBox,
+    TextEdit,
+)
+from napari.qt.threading import FunctionWorker, thread_worker
 from napari.utils.notifications import show_info
+from qtpy.QtCore import QObject, Qt, Signal
+from qtpy.QtGui import QFontDatabase
 
 from svcode_core.config import ConfigError, SystemConfig
+from svcode_core.physics.calibration import (
+    Calibration,
+    CalibrationError,
+    calibrate,
+    read_positions,
+    report_text,
+    save_calibration,
+)
 
+from .._errors import notify_warning
 from .._layers import (
     SYSTEM_KEY,
     chief_rays_from_boxes,
+    layer_metadata,
     notify_error,
     sub_view_boxes,
 )
-from ._choosers import SystemChooser, image_layer_box, raw_frame_fit
+from ._choosers import LayerOrFile, SystemChooser, image_layer_box, raw_frame_fit, scan_fit
 
 __all__ = ["CalibrationWidget"]
 
 BOXES = "sub-views"
 RAYS = "chief rays"
+SPOTS = "spots"
+#: the spots layer: measured centroids and those the fitted chief rays predict
+SPOT_STYLE = {"measured": ("disc", "#00e5ff"), "predicted": ("cross", "#ff4fd8")}
+#: progress-bar steps of a calibration
+STEPS = 100
 LENS_COLOURS = ["#e6194b", "#3cb44b", "#ffe119", "#4363d8", "#f58231",
                 "#911eb4", "#42d4f4", "#f032e6", "#bfef45"]
 
 
+class _ProgressRelay(QObject):
+    """Carries the calibration's progress from its thread to the widget (queued signal)."""
+
+    progress = Signal(str, float)
+
+
+class _Cancelled(Exception):
+    """Raised in the calibration thread, at its next progress report, after *Cancel*."""
+
+
+@dataclass(frozen=True)
+class _Failed:
+    """What :func:`_calibrate_or_failed` returns when the calibration raised ``error``."""
+
+    error: Exception
+
+
+def _calibrate_or_failed(*args: Any, **kwargs: Any) -> Calibration | _Failed:
+    """:func:`~svcode_core.physics.calibration.calibrate`, returning the exception it raises.
+
+    The worker then never errs: napari 0.9's task-status handler of an erring worker
+    raises a ``TypeError`` of its own (a second notice, with a traceback). The exception
+    keeps its traceback for the log.
+    """
+    try:
+        return calibrate(*args, **kwargs)
+    except Exception as err:  # noqa: BLE001 - the thread boundary: shown as one notice
+        return _Failed(err)
+
+
 class CalibrationWidget(Container):
-    """Check and nudge the nine chief rays of a raw CM² frame, then save ``system.json``.
+    """Check and nudge the nine chief rays of a raw CM² frame, or calibrate them (and the
+    PSFs) from a point-source scan, then save the system.
 
     *Show sub-views* applies the chosen system to the raw layer and draws a Points layer
     ``"chief rays"`` (one point per lens, labelled ``lens ℓ`` beside it) and a Shapes layer
@@ -36,6 +98,18 @@ class CalibrationWidget(Container):
     ray last clicked or moved), both placed like the raw layer. Dragging a ray moves its
     box, dragging the box moves its ray; either updates the system, and *Save* writes it
     to a ``system.json``.
+
+    *Calibrate from a scan*: a scan (a layer or a TIFF file of ``N × H × W`` raw frames),
+    its positions CSV (:func:`~svcode_core.physics.calibration.read_positions`), an optional dark
+    frame or stack and the low-rank tolerance. *Calibrate* runs
+    :func:`~svcode_core.physics.calibration.calibrate` in a worker thread with the chosen system
+    as the nominal one (progress below the button; *Cancel* stops at the next frame or
+    lens). The calibrated system is applied to the raw layer (the scan itself when no
+    raw frame of that sensor is open; a scan read from a file is added as a layer), its
+    chief rays are drawn, a ``"spots"`` layer shows the measured spot centroids and those
+    the fit predicts for one frame, and the report is shown. *Save calibration* writes
+    the folder of :func:`~svcode_core.physics.calibration.save_calibration` (``system.json`` with
+    its PSF stack) and gives the raw layer that saved system.
     """
 
     def __init__(self, napari_viewer: napari.viewer.Viewer) -> None:
@@ -48,14 +122,56 @@ class CalibrationWidget(Container):
                                      "clicking a chief ray chooses it too")
         self._out = FileEdit(label="save to", mode="w", filter="*.json", value="system.json")
         self._save = PushButton(text="Save system.json")
-        super().__init__(widgets=[self._layer, self._system_choice, self._show, self._lens,
-                                  self._out, self._save])
+        self._scan_title = Label(value="<b>Calibrate from a scan</b>")
+        self._scan = LayerOrFile(napari_viewer, "scan", fit=scan_fit,
+                                 tooltip="raw frames N×H×W, one per point-source position")
+        self._positions = FileEdit(label="positions", mode="r", filter="*.csv",
+                                   tooltip="CSV: a header line row,col, then the source "
+                                           "position of each frame in whole pixels of the "
+                                           "S×S object grid")
+        self._dark = LayerOrFile(napari_viewer, "dark",
+                                 tooltip="optional: a frame (H×W) or frames (M×H×W, "
+                                         "averaged) with the source off")
+        self._tolerance = FloatSpinBox(label="tolerance", min=0.0, max=0.5, step=1e-3, value=0.0,
+                                       tooltip="low-rank tolerance: the PSF energy fraction "
+                                               "the operator may leave out (e.g. 0.001)")
+        self._tolerance.native.setDecimals(5)
+        self._tolerance.native.setSpecialValueText("the system's")
+        self._calibrate = PushButton(text="Calibrate")
+        self._cancel = PushButton(text="Cancel", enabled=False)
+        self._progress = ProgressBar(min=0, max=STEPS, value=0, label="progress")
+        self._status = Label(value="")
+        self._spot_frame = SpinBox(label="spots of frame", min=0, max=0, value=0,
+                                   tooltip="the scan frame whose measured and predicted spot "
+                                           "centroids the 'spots' layer shows")
+        self._report = TextEdit(value="", visible=False)
+        self._report.read_only = True
+        self._report.native.setLineWrapMode(self._report.native.LineWrapMode.NoWrap)
+        self._report.native.setFont(QFontDatabase.systemFont(QFontDatabase.SystemFont.FixedFont))
+        self._folder = FileEdit(label="save calibration to", mode="d", value="calibration")
+        self._save_calibration = PushButton(text="Save calibration", enabled=False)
+        super().__init__(widgets=[
+            self._layer, self._system_choice, self._show, self._lens, self._out, self._save,
+            self._scan_title, self._scan, self._positions, self._dark, self._tolerance,
+            self._calibrate, self._cancel, self._progress, self._status, self._spot_frame,
+            self._report, self._folder, self._save_calibration,
+        ])
         self._show.changed.connect(self.show_sub_views)
         self._save.changed.connect(self.save)
         self._lens.changed.connect(self._draw_box)
+        self._calibrate.changed.connect(self.start_calibration)
+        self._cancel.changed.connect(self.cancel)
+        self._spot_frame.changed.connect(self._draw_spots)
+        self._save_calibration.changed.connect(self.save_calibration)
+        self._relay = _ProgressRelay()
+        self._relay.progress.connect(self._on_progress, Qt.ConnectionType.QueuedConnection)
         self.system: SystemConfig | None = None
+        self.calibration: Calibration | None = None
+        self._calibrated_from: dict[str, Any] = {}  # the nominal system and the frames
+        self.worker: FunctionWorker | None = None
         self._raw: napari.layers.Image | None = None
         self._updating = False
+        self._run: dict[str, Any] = {}
 
     def show_sub_views(self) -> None:
         """Apply the chosen system to the raw layer and draw its chief rays and one box."""
@@ -196,3 +312,198 @@ class CalibrationWidget(Container):
             notify_error(err, "choose a folder you can write to")
             return
         show_info(f"Saved system {self.system.name!r} to {path}")
+
+    # ------------------------------------------------------- scan calibration
+    def _read_scan(self) -> dict[str, Any] | None:
+        """The scan, positions, dark frame and nominal system; ``None`` after a notice."""
+        try:
+            scan = self._scan.read()
+        except (FileNotFoundError, ValueError) as err:
+            notify_error(err, "choose a TIFF file of N×H×W raw frames")
+            return None
+        if scan is None:
+            notify_error("No scan chosen.",
+                         "choose a scan layer, or a TIFF file of N×H×W raw frames")
+            return None
+        frames, metadata, name, layer = scan
+        frames = frames[None] if frames.ndim == 2 else frames
+        try:
+            nominal = self._system_choice.system(metadata)
+        except (ConfigError, FileNotFoundError) as err:
+            notify_error(err, "fix the system.json, or choose a preset")
+            return None
+        if nominal is None:
+            notify_error(f"Scan {name!r} has no system configuration.",
+                         "choose the nominal system (a preset or a system.json) above")
+            return None
+        if frames.ndim != 3 or tuple(frames.shape[1:]) != tuple(nominal.sensor_shape):
+            shape = "×".join(str(n) for n in frames.shape)
+            notify_error(f"Scan {name!r} is {shape} pixels but system {nominal.name!r} has a "
+                         f"{nominal.sensor_shape[0]}×{nominal.sensor_shape[1]} sensor.",
+                         "choose the nominal system of the instrument that recorded the scan")
+            return None
+        if str(self._positions.value) in ("", "."):
+            notify_error("No positions file chosen.",
+                         "choose the CSV of the source positions (header row,col)")
+            return None
+        try:
+            positions = read_positions(self._positions.value)
+        except (CalibrationError, FileNotFoundError, UnicodeDecodeError) as err:
+            notify_error(err, "fix the positions file: a header line row,col, then one "
+                              "whole-pixel row,col line per frame")
+            return None
+        try:
+            dark = self._dark.read()
+        except (FileNotFoundError, ValueError) as err:
+            notify_error(err, "choose a TIFF file of the dark frame(s), or none")
+            return None
+        tolerance = self._tolerance.value or None  # 0: the system's
+        return dict(frames=frames, name=name, layer=layer, nominal=nominal,
+                    positions=positions, dark=None if dark is None else dark[0],
+                    tolerance=tolerance)
+
+    def start_calibration(self) -> FunctionWorker | None:
+        """Check the inputs and start calibrating in a worker thread (errors become notices).
+
+        Returns ``None`` without running when a check fails.
+        """
+        run = self._read_scan()
+        if run is None:
+            return None
+        stop = threading.Event()
+        relay = self._relay
+
+        def progress(stage: str, fraction: float) -> None:  # in the worker thread
+            if stop.is_set():
+                raise _Cancelled
+            relay.progress.emit(stage, fraction)
+
+        worker = thread_worker(_calibrate_or_failed, start_thread=False)(
+            run["frames"], run["positions"], run["nominal"], dark=run["dark"],
+            tolerance=run["tolerance"], progress=progress)
+        worker.returned.connect(self._on_returned)
+        worker.finished.connect(self._on_calibration_finished)
+        self._run = {**run, "stop": stop}
+        self.worker = worker
+        self._calibrate.enabled, self._cancel.enabled = False, True
+        self._progress.value = 0
+        self._status.value = f"Calibrating {run['nominal'].name} from {len(run['frames'])} frames…"
+        worker.start()
+        return worker
+
+    def cancel(self) -> None:
+        """Ask the calibration to stop at its next frame or lens."""
+        if self._run:
+            self._run["stop"].set()
+        self._cancel.enabled = False
+        self._status.value = "Cancelling…"
+
+    def _on_progress(self, stage: str, fraction: float) -> None:
+        # Widget updates only: never process events from a worker callback.
+        if self._cancel.enabled:
+            self._progress.value = round(STEPS * fraction)
+            self._status.value = f"Calibrating: {stage}"
+
+    def _on_returned(self, result: Calibration | _Failed) -> None:
+        if isinstance(result, _Failed):
+            self._on_calibration_error(result.error)
+        else:
+            self._on_calibrated(result)
+
+    def _on_calibration_error(self, err: Exception) -> None:
+        if isinstance(err, _Cancelled):
+            self._status.value = "Calibration cancelled."
+            show_info("Calibration cancelled; nothing was changed.")
+            return
+        self._status.value = "Calibration failed (see the notification)."
+        notify_error(err, "check the scan, its positions and the nominal system")
+
+    def _on_calibration_finished(self) -> None:
+        self._calibrate.enabled, self._cancel.enabled = True, False
+
+    def _on_calibrated(self, calibration: Calibration) -> None:
+        """Apply the calibrated system, draw its chief rays and spots, show the report."""
+        run = self._run
+        self.calibration = calibration
+        self._calibrated_from = {"nominal": run["nominal"], "frames": run["frames"]}
+        self._raw = self._target_layer(run)
+        self._apply(calibration.system)
+        self._draw()
+        self._spot_frame.max = len(run["frames"]) - 1
+        middle = len(run["frames"]) // 2  # the centre of a raster: a spot in every lens
+        if self._spot_frame.value == middle:
+            self._draw_spots()
+        else:
+            self._spot_frame.value = middle  # draws the spots
+        self._report.value = report_text(calibration, run["nominal"])
+        self._report.visible = True
+        self._save_calibration.enabled = True
+        shift = calibration.array_shift
+        self._progress.value = STEPS
+        self._status.value = (f"Calibrated: array shift ({shift[0]:+.2f}, {shift[1]:+.2f}) px, "
+                              f"rotation {calibration.array_rotation_deg:+.3f}°, "
+                              f"K = {max(calibration.ranks)}")
+
+    def _target_layer(self, run: dict[str, Any]) -> napari.layers.Image:
+        """The layer to apply the calibration to: the raw layer if it has the scan's sensor
+        shape, else the scan's layer; a scan read from a file is added as one."""
+        sensor = tuple(run["nominal"].sensor_shape)
+        raw = self._layer.value
+        if raw is not None and tuple(raw.data.shape[-2:]) == sensor:
+            return raw
+        if run["layer"] is not None:
+            return run["layer"]
+        return self._viewer.add_image(run["frames"], name=f"{run['name']} (scan)",
+                                      colormap="gray",
+                                      metadata=layer_metadata(run["nominal"], "scan"))
+
+    def _draw_spots(self, *_: Any) -> None:
+        """Show the measured and predicted spot centroids of the chosen scan frame."""
+        if self.calibration is None or self._raw is None:
+            return
+        frame = self._spot_frame.value
+        kinds, lenses, points = [], [], []
+        for kind, centroids in (("measured", self.calibration.centroids[frame]),
+                                ("predicted", self.calibration.predicted[frame])):
+            found = np.flatnonzero(np.isfinite(centroids).all(axis=1))
+            kinds += [kind] * len(found)
+            lenses += found.tolist()
+            points.append(centroids[found])
+        layers = self._viewer.layers
+        if SPOTS in layers:
+            layers.remove(SPOTS)
+        size = max(3.0, 3.0 * self.system.optics.airy_radius)
+        self._viewer.add_points(
+            np.concatenate(points).reshape(-1, 2), name=SPOTS,
+            features={"kind": kinds, "lens": lenses},
+            symbol=[SPOT_STYLE[kind][0] for kind in kinds],
+            face_color=[SPOT_STYLE[kind][1] for kind in kinds], border_width=0,
+            size=size, translate=tuple(self._raw.translate[-2:]),
+        )
+        if self._raw.ndim == 3 and self._raw.data.shape[0] == len(self.calibration.centroids):
+            self._viewer.dims.set_point(0, float(self._raw.translate[0]
+                                                 + frame * self._raw.scale[0]))
+        layers.selection.active = layers[RAYS]
+
+    def save_calibration(self) -> dict[str, Path] | None:
+        """Write the calibration (``system.json``, its PSF stack, the report) to the chosen
+        folder and apply the saved system, which names its PSFs, to the raw layer."""
+        calibration = self.calibration
+        if calibration is None:
+            notify_error("No calibration to save yet.", "press 'Calibrate' first")
+            return None
+        folder = Path(self._folder.value)
+        try:
+            files = save_calibration(calibration, folder, self._calibrated_from["nominal"],
+                                     self._calibrated_from["frames"])
+        except OSError as err:
+            notify_error(err, "choose a folder you can write to")
+            return None
+        moved = self.system.chief_rays != calibration.system.chief_rays
+        self._apply(SystemConfig.load(files["system"]))
+        if moved:
+            self._draw()
+            notify_warning("Chief rays moved after calibrating: saved the fitted ones.",
+                           "use 'Save system.json' to keep moved rays (without the PSFs)")
+        show_info(f"Saved the calibration to {folder}: system.json, psfs.tif and the report.")
+        return files

@@ -238,16 +238,16 @@ class ReconstructWidget(Container):
         description = {"method": method, "device": device, **options}
         if method == "svcode":
             path = panel.weights_path(system.name if system else None)
-            model, trained_for = cached_model(path, system)
+            model, trained_for = cached_model(path, system)  # chief rays may differ
             if system is None:
                 show_info(f"The layer has no system configuration; using the model's "
                           f"training system {trained_for.name!r}.")
-            system = trained_for
+                system = trained_for
             description.update(path=str(path), architecture=type(model).__name__,
                                system=trained_for.name)
 
-            def build() -> Any:
-                return build_reconstructor("svcode", trained_for, model=model, device=device,
+            def build() -> Any:  # the sub-views are cut at the layer's chief rays
+                return build_reconstructor("svcode", system, model=model, device=device,
                                            **options)
         else:
             if system is None:

@@ -10,6 +10,7 @@ from typing import Any
 from ..config import SystemConfig, load_system
 from ..methods.baselines import RL_ITERATIONS, WIENER_BALANCE, settings_for
 from ..methods.build import MethodSpec
+from ..methods.frames import finite_frame
 from ..methods.registry import (
     LEARNED_METHODS,
     METHODS,
@@ -52,6 +53,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--system",
         help="system JSON or preset name (default: the one stored in the "
         "input TIFF, else system.json beside it)",
+    )
+    parser.add_argument(
+        "--register", action="store_true",
+        help="first estimate the microlens array's drift from the recording itself "
+        "(chief-ray self-registration on the mean of its first 8 frames, about 3 LSV-ADMM "
+        "solves) and reconstruct with the moved system; it is written to OUT's folder as "
+        "OUT-stem.registered/system.json (with its PSFs and registration.json)",
     )
     parser.add_argument(
         "--weights", type=Path,
@@ -110,6 +118,29 @@ def _system(args: argparse.Namespace):
                 "beside it; pass --system FILE.json or a preset name"
             )
         return reader.system
+
+
+def _register(args: argparse.Namespace, system) -> tuple[object, dict]:
+    """The system moved by self-registration of the input, written beside ``--out``."""
+    from ..methods.baselines.self_registration import (
+        REGISTRATION_FRAMES,
+        RegistrationRejected,
+        register_recording,
+    )
+
+    with FrameReader(args.input) as reader:
+        frames = [finite_frame(reader[i], i, scale=args.input_scale)
+                  for i in range(min(len(reader), REGISTRATION_FRAMES))]  # fmt: skip
+    folder = args.out.with_name(args.out.stem + ".registered")
+    try:
+        moved, registration = register_recording(frames, system, folder)
+    except RegistrationRejected as err:
+        print(f"warning: {err}; reconstructing with the given system")
+        return system, {"registration": {"rejected": str(err)}}
+    print(f"registered: lens offsets up to {abs(registration.offsets).max():.2f} px, array "
+          f"shift {registration.shift.round(2).tolist()} px, rotation "
+          f"{registration.rotation_deg:.3f}°; moved system in {folder}")
+    return moved, {"registration": {**registration.to_dict(), "system": str(folder)}}
 
 
 def add_method_arguments(parser: argparse.ArgumentParser) -> None:
@@ -237,15 +268,18 @@ def run(args: argparse.Namespace) -> int:
     if args.input_scale is not None and not 0 < args.input_scale < float("inf"):
         raise ValueError(f"--input-scale must be a finite number > 0, got {args.input_scale}")
     system = _system(args)
-    spec = _spec(args, system)
     start = time.perf_counter()
+    recorded: dict = {}
+    if args.register:
+        system, recorded = _register(args, system)
+    spec = _spec(args, system)
     summary = reconstruct_file(
         args.input,
         args.out,
         spec,
         system=system,
         views_path=args.views,
-        settings=spec.describe(),
+        settings={**spec.describe(), **recorded},
         workers=args.workers,
         scheduler=args.scheduler,
         progress=not args.quiet,

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import csv
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -49,6 +50,7 @@ from .optics import system_psfs
 __all__ = [
     "Calibration",
     "CalibrationError",
+    "Progress",
     "calibrate",
     "fit_array",
     "read_positions",
@@ -59,6 +61,9 @@ __all__ = [
 #: Weight of the nominal-model prior on a grid PSF, as a fraction of the mean data weight
 #: of a grid node: enough to fix nodes the scan does not reach, a 1 % pull elsewhere.
 PRIOR_WEIGHT = 1e-2
+
+#: ``progress(stage, fraction)``: what :func:`calibrate` is doing and the fraction done.
+Progress = Callable[[str, float], None]
 
 
 class CalibrationError(ValueError):
@@ -242,8 +247,11 @@ def _centroid(windows: np.ndarray) -> np.ndarray:
 
 
 def _find_spots(frames: np.ndarray, expected: np.ndarray, system: SystemConfig,
-                sigma: float) -> np.ndarray:  # fmt: skip
-    """``(N, 9, 2)`` integer peak of each lens's spot, ``-1`` where none is detected."""
+                sigma: float, progress: Progress) -> np.ndarray:  # fmt: skip
+    """``(N, 9, 2)`` integer peak of each lens's spot, ``-1`` where none is detected.
+
+    ``progress`` hears of every frame, as the fractions 0.05 to 0.5 of the calibration.
+    """
     radius = _lens_pitch(system) / 2.0
     smooth_sigma = max(system.optics.airy_radius / 2.0, 0.5)
     # Noise of the smoothed frame: white noise through a unit-sum Gaussian.
@@ -252,6 +260,8 @@ def _find_spots(frames: np.ndarray, expected: np.ndarray, system: SystemConfig,
     threshold = float(norm.isf(1.0 / frames.size)) * smooth_noise
     peaks = np.full(expected.shape, -1, dtype=np.int64)
     for n, frame in enumerate(frames):
+        progress(f"finding spots: frame {n + 1} of {len(frames)}",
+                 0.05 + 0.45 * n / len(frames))  # fmt: skip
         smooth = ndimage.gaussian_filter(frame, smooth_sigma)
         found = peak_local_max(smooth, min_distance=max(1, int(radius // 2)),
                                threshold_abs=threshold, exclude_border=False)  # fmt: skip
@@ -348,6 +358,7 @@ def calibrate(
     dark: np.ndarray | None = None,
     tolerance: float | None = None,
     saturation: float | None = None,
+    progress: Progress | None = None,
 ) -> Calibration:
     """Calibrate ``system`` from a point-source scan.
 
@@ -368,6 +379,11 @@ def calibrate(
     saturation : float, optional
         Reading at which a pixel is saturated; default the full scale of integer frames,
         else ``system.noise.saturation``.
+    progress : callable, optional
+        ``progress(stage, fraction)`` is called, in the calling thread, as every step
+        starts (every frame while finding spots, every lens while fitting PSFs) with a
+        short description and the fraction of the work done, from 0 to 1 (the last call).
+        An exception it raises stops the calibration and propagates: a way to cancel.
 
     Returns
     -------
@@ -379,6 +395,8 @@ def calibrate(
         For mismatched counts, positions outside the grid, another sensor size, saturated
         or missing spots (naming the frame), or a scan that does not determine the PSF grid.
     """
+    report = progress if progress is not None else _silent
+    report("checking the scan", 0.0)
     system = system.validate()
     frames = np.asarray(frames)
     if saturation is None:  # integer camera data saturate at the type's full scale
@@ -406,7 +424,8 @@ def calibrate(
     half = k // 2
     nominal_rays = np.asarray(system.chief_rays, float)
     expected = _image_points(system, nominal_rays, positions)
-    peaks = _find_spots(frames, np.rint(expected).astype(np.int64), system, sigma)
+    peaks = _find_spots(frames, np.rint(expected).astype(np.int64), system, sigma, report)
+    report("fitting the chief rays", 0.5)
 
     # -- chief rays: centroid of each whole spot against the nominal PSF's centroid
     found = (peaks >= 0).all(axis=-1)
@@ -456,22 +475,29 @@ def calibrate(
             f"(optics.psf_grid): scan at least {g} distinct rows and {g} distinct columns "
             "spread over the object grid")
     samples = windows / brightness
-    psfs = np.stack([
-        _fit_grid(samples[:, lens], inside[:, lens], design, prior_psfs[lens])
-        for lens in range(N_LENSES)
-    ])  # fmt: skip
+    psfs = []
+    for lens in range(N_LENSES):
+        report(f"fitting the PSFs: lens {lens + 1} of {N_LENSES}", 0.55 + 0.4 * lens / N_LENSES)
+        psfs.append(_fit_grid(samples[:, lens], inside[:, lens], design, prior_psfs[lens]))
+    psfs = np.stack(psfs)
     # noise of a fitted pixel: one frame's noise over the number of frames fitting a node
     per_node = float(np.mean(np.sum(design**2, axis=0)))
     psfs = _denoise(psfs, sigma / brightness / math.sqrt(per_node), psfs.size)
     reference = float(system_psfs(system).sum(axis=(-2, -1)).max())
     throughput = psfs.sum(axis=(-2, -1)) / reference
+    report("choosing the low-rank order", 0.95)
     ranks = tuple(decompose_psfs(lens_psfs_, None, tolerance).rank for lens_psfs_ in psfs)
+    report("done", 1.0)
     return Calibration(
         system=system, psfs=psfs, chief_rays=fitted, offsets=offsets, offset_errors=errors,
         array_shift=array_shift, array_rotation_deg=rotation, lens_residuals=residuals,
         centroids=centroids, predicted=np.where(complete[..., None], predicted, np.nan),
         throughput=throughput, ranks=ranks, brightness=brightness, noise_sigma=sigma,
     )  # fmt: skip
+
+
+def _silent(stage: str, fraction: float) -> None:
+    """The :data:`Progress` of a caller that did not ask for one."""
 
 
 # ------------------------------------------------------------------ output

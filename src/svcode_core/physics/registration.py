@@ -1,25 +1,20 @@
 """Chief-ray self-registration: lens-array drift estimated from a raw frame itself.
 
-Every sub-view is an image of the same object, so a lens whose image moved by ``d_ℓ``
-shows the object displaced by ``d_ℓ`` against the other sub-views. Each sub-view is
-registered to the reference lens's by weighted least squares over the sensor part both
-see, tapered to its edge (a gain, an offset and a sub-pixel shift,
-:func:`scipy.optimize.least_squares`); the same registration on the model's frame of the
-reference view (taken as the object) is subtracted, as what the lenses' own blur,
-distortion and crosstalk give. A least-squares fit splits the offsets into an array
-translation, a rotation about the lattice centre and per-lens residuals.
+Every lens forms an image of the same object. Given an estimate ``x̂`` of that object (a
+reconstruction with the believed system), the forward model predicts each lens's share of
+the sensor frame; a lens whose image moved by ``d_ℓ`` contributes its share displaced by
+``d_ℓ``. All nine displacements are fitted at once, with a gain and an offset, by least
+squares over every sensor pixel (:func:`scipy.optimize.least_squares`, cubic-spline
+shifts): the sub-views overlap on the sensor, so no one of them can be registered alone.
+A reconstruction made with misregistered lenses is a compromise between them, so one fit
+finds only part of the drift; :func:`~svcode_core.methods.baselines.self_registration.self_register`
+repeats reconstruct → register → rebuild the operator a few rounds, adding up the moves.
 
 Only offsets *between* lenses are observable: moving every lens image by the same amount
-is the same frame as moving the object, so the offsets are relative to the reference lens
-(its own is 0) and the translation is that of the array relative to it.
-
-Accuracy (``bench/calibration.py``, ``cm2-mini``, ``calibration`` departures, the
-held-out ``cell.png`` scene): the estimated offsets relative to the centre lens are off by
-0.88 px on average (1.48 px at worst), where assuming no drift is off by 0.23 px; on the
-tiny test system, 0.2–0.5 px for true offsets up to 0.6 px. The reference used (the
-model's frame of the centre view) differs from the object by the centre lens's blur and
-crosstalk, and that difference moves the registration by more than the drift itself.
-This is therefore not an option of ``svcode reconstruct``.
+is the same frame as moving the object, so offsets are relative to the reference lens
+(its own is 0). A least-squares fit splits them into an array translation, a rotation
+about the lattice centre and per-lens residuals. Measured accuracy is in
+``bench/results/calibration.md``.
 """
 
 from __future__ import annotations
@@ -35,12 +30,11 @@ from scipy.optimize import least_squares
 from ..config import N_LENSES, SystemConfig
 from .calibration import fit_array
 from .cm2 import CM2Operator
-from .geometry import crop_to_sensor, extract_sub_views, pad_sensor_frame
+from .geometry import crop_to_sensor, place_sub_views
+from .optics import system_psfs
+from .psf_io import model_psfs
 
-__all__ = ["Registration", "register_frame"]
-
-#: Phase-correlation upsampling: offsets are resolved to 1 / UPSAMPLE px.
-UPSAMPLE = 50
+__all__ = ["Registration", "register_views", "registered_system"]
 
 
 @dataclass(frozen=True)
@@ -78,81 +72,133 @@ class Registration:
         }
 
 
-def _weights(valid: np.ndarray, taper: float) -> np.ndarray:
-    """Weights ``(9, S, S)`` rising smoothly from 0 at the edge of each view's ``valid``
-    region to 1 ``taper`` px inside."""
-    distance = np.stack([ndimage.distance_transform_edt(v) for v in valid])
-    return np.sin(0.5 * np.pi * np.clip(distance / taper, 0.0, 1.0)) ** 2
+def _lens_frames(operator: CM2Operator, estimate: np.ndarray) -> np.ndarray:
+    """``(9, H, W)``: each lens's share of the noiseless sensor frame of ``estimate``."""
+    system = operator.system
+    x = torch.as_tensor(np.clip(estimate, 0.0, None), dtype=operator.lenses.dtype)
+    with torch.no_grad():
+        blur = operator.lens_blur(x)
+        frames = [crop_to_sensor(place_sub_views(
+            torch.where(torch.arange(N_LENSES)[:, None, None] == lens, blur, 0.0),
+            system, operator.margin), system) for lens in range(N_LENSES)]  # fmt: skip
+    return torch.stack(frames).double().numpy()
 
 
-def _shift(model: np.ndarray, measured: np.ndarray, weight: np.ndarray) -> np.ndarray:
-    """Displacement ``(2,)`` of ``measured``'s content against ``model``'s.
+def _fit_moves(frame: np.ndarray, lens_frames: np.ndarray, limit: float) -> np.ndarray:
+    """``(9, 2)`` moves ``d`` with ``frame ≈ a · Σ_ℓ shift(lens_frames[ℓ], d_ℓ) + b``.
 
-    Weighted least squares over ``weight`` of ``measured ≈ a · shift(model, d) + b``
-    (gain ``a`` and offset ``b`` free; cubic-spline shift).
+    Bounded least squares (:func:`scipy.optimize.least_squares`, ``|d| ≤ limit`` per
+    axis) over every sensor pixel, the derivative of a shifted image being minus its
+    gradient.
     """
-    root = np.sqrt(weight)
+
+    def render(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        moves = p[2:].reshape(N_LENSES, 2)
+        images = np.stack([ndimage.shift(image, move, order=3, mode="nearest")
+                           for image, move in zip(lens_frames, moves, strict=True)])
+        return images, p[0] * images.sum(axis=0) + p[1]
 
     def residual(p: np.ndarray) -> np.ndarray:
-        moved = ndimage.shift(model, p[2:], order=3, mode="nearest")
-        return (root * (measured - p[0] * moved - p[1])).ravel()
+        return (render(p)[1] - frame).ravel()
 
-    scale = float((weight * measured).sum() / max((weight * model).sum(), 1e-30))
-    fit = least_squares(residual, np.array([scale, 0.0, 0.0, 0.0]), x_scale="jac")
-    return fit.x[2:]
+    def jacobian(p: np.ndarray) -> np.ndarray:
+        images, _ = render(p)
+        columns = [images.sum(axis=0).ravel(), np.ones(frame.size)]
+        for image in images:
+            rows, cols = np.gradient(image)
+            columns += [-p[0] * rows.ravel(), -p[0] * cols.ravel()]
+        return np.stack(columns, axis=1)
+
+    total = lens_frames.sum(axis=0)
+    gain = float((frame * total).sum() / max((total * total).sum(), 1e-30))
+    start = np.concatenate([[gain, 0.0], np.zeros(2 * N_LENSES)])
+    bound = np.full(2 * N_LENSES, float(limit))
+    fit = least_squares(residual, start, jac=jacobian, x_scale="jac",
+                        bounds=(np.r_[-np.inf, -np.inf, -bound], np.r_[np.inf, np.inf, bound]))
+    return fit.x[2:].reshape(N_LENSES, 2)
 
 
-def _pairwise(views: np.ndarray, weight: np.ndarray, reference: int) -> np.ndarray:
-    """``(9, 2)`` displacement of every view's content against the reference view's."""
-    return np.stack([np.zeros(2) if lens == reference else
-                     _shift(views[reference], views[lens], weight[lens])
-                     for lens in range(N_LENSES)])  # fmt: skip
-
-
-def register_frame(
+def register_views(
     frame: np.ndarray,
     system: SystemConfig,
+    estimate: np.ndarray,
     operator: CM2Operator | None = None,
     reference: int = 4,
+    limit: float = 1.0,
 ) -> Registration:
-    """Estimate the lens offsets of ``system`` from a raw frame.
+    """Lens offsets of ``frame`` against the frame ``operator`` predicts for ``estimate``.
+
+    Each lens's share of the predicted frame is moved by its own sub-pixel offset, the
+    sum (times a gain, plus an offset) fitted to ``frame`` by least squares: crosstalk
+    between the overlapping sub-views is part of the model, not an error of it.
 
     Parameters
     ----------
     frame : numpy.ndarray
         Raw sensor frame ``system.sensor_shape``.
     system : SystemConfig
-        The system the frame is believed to come from (its chief rays are the start).
+        The system the frame is believed to come from.
+    estimate : numpy.ndarray
+        ``(S, S)`` estimate of the object (a reconstruction of ``frame`` with ``operator``).
     operator : CM2Operator, optional
-        Its forward model (default :meth:`CM2Operator.from_system`), to subtract the
-        displacements the lenses' own blur and distortion give.
+        Forward model of ``system`` (default :meth:`CM2Operator.from_system`).
     reference : int
         Lens whose offset is 0 (default the centre lens, which sees the whole field).
+    limit : float
+        Largest move of a lens image along each axis, pixels (a trust region: an estimate
+        made with misregistered lenses holds ghosts that a free fit may lock onto).
 
     Returns
     -------
     Registration
+        Offsets of each lens's image against where ``system`` puts it.
     """
     system = system.validate()
     frame = np.asarray(frame, dtype=np.float64)
     if frame.shape != tuple(system.sensor_shape):
         raise ValueError(f"frame is {frame.shape[0]}×{frame.shape[1]} px, the system's sensor "
                          f"{system.sensor_shape[0]}×{system.sensor_shape[1]}")  # fmt: skip
+    size = system.sub_view_size
+    estimate = np.asarray(estimate, dtype=np.float64)
+    if estimate.shape != (size, size):
+        raise ValueError(f"estimate must be {size}×{size}, got {estimate.shape}")
     if operator is None:
         operator = CM2Operator.from_system(system, dtype=torch.float64)
-    dtype = operator.lenses.dtype
-    window = torch.zeros(system.padded_shape, dtype=torch.float64)
-    window[system.sensor_window] = 1.0
-    valid = extract_sub_views(window, system).numpy() > 0
-    views = extract_sub_views(pad_sensor_frame(torch.as_tensor(frame), system), system).numpy()
-    weight = _weights(valid & valid[reference], float(system.optics.kernel_size))
-    measured = _pairwise(views, weight, reference)
-    # what the lenses' own blur, distortion and crosstalk give: the same on the model's
-    # frame of the reference view, taken as the object
-    proxy = torch.as_tensor(np.clip(views[reference], 0.0, None), dtype=dtype)
-    with torch.no_grad():
-        model_frame = crop_to_sensor(operator.forward(proxy), system).double()
-    model_views = extract_sub_views(pad_sensor_frame(model_frame, system), system).numpy()
-    offsets = measured - _pairwise(model_views, weight, reference)
+    moves = _fit_moves(frame, _lens_frames(operator, estimate), limit)
+    offsets = moves - moves[reference]
     shift, rotation, residuals = fit_array(offsets, system)
     return Registration(offsets, shift, rotation, residuals, reference)
+
+
+def registered_system(system: SystemConfig, offsets: np.ndarray) -> tuple[SystemConfig, np.ndarray]:
+    """``system`` with each lens's image moved by ``offsets``, and the PSFs that go with it.
+
+    The whole-pixel part of each offset moves the lens's chief ray; the sub-pixel rest is
+    put into the lens's PSFs: the pupil model's computed at the moved image points, or a
+    measured PSF model (``system.psf_model``) shifted by it (cubic spline).
+
+    Parameters
+    ----------
+    system : SystemConfig
+    offsets : numpy.ndarray
+        ``(9, 2)`` displacement ``(row, col)`` in pixels of each lens's image.
+
+    Returns
+    -------
+    (SystemConfig, numpy.ndarray)
+        The moved system and its PSFs ``(9, G·G, k, k)``
+        (:meth:`CM2Operator.from_psfs` builds the operator).
+    """
+    offsets = np.asarray(offsets, dtype=float)
+    if offsets.shape != (N_LENSES, 2) or not np.all(np.isfinite(offsets)):
+        raise ValueError(f"offsets must be finite, shape ({N_LENSES}, 2), got {offsets.shape}")
+    whole = np.rint(offsets)
+    rays = np.asarray(system.chief_rays) + whole.astype(np.int64)
+    moved = system.replace(chief_rays=tuple((int(r), int(c)) for r, c in rays)).validate()
+    rest = offsets - whole
+    if system.psf_model is None:
+        return moved, system_psfs(moved, offsets=rest)
+    psfs = model_psfs(system)
+    shifted = np.stack([[ndimage.shift(psf, rest[lens], order=3, mode="constant")
+                         for psf in psfs[lens]] for lens in range(N_LENSES)])  # fmt: skip
+    return moved, np.clip(shifted, 0.0, None)
