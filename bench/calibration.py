@@ -2,7 +2,7 @@
 
 The instrument has drifted from the nominal preset (:data:`DRIFT` by default: the
 microlens array moved by about a pixel and turned by 0.2°, each lens off by up to half a
-pixel more; or a named set of :mod:`svcode_core.departures`). A 9×9 bead scan of it is
+pixel more; or a named set of :mod:`svcode_core.physics.departures`). A 9×9 bead scan of it is
 simulated the way a lab records one (source bright enough to reach about 75 % of full
 scale, ``--repeats`` frames averaged per position by the fit, 8 dark frames, the nominal
 camera plus a black level), calibrated, and the held-out scenes (the scikit-image images
@@ -13,7 +13,7 @@ instrument, given
 * the calibrated system's operator,
 * the nominal preset's operator,
 * the nominal preset moved by chief-ray self-registration of that frame
-  (:func:`svcode_core.baselines.self_registration.self_register`).
+  (:func:`svcode_core.methods.baselines.self_registration.self_register`).
 
 It also records the chief-ray error of the calibration and the error of the
 self-registered lens offsets (relative to the centre lens), beside assuming no drift.
@@ -33,16 +33,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from svcode_core.baselines import reconstruct_with_baseline
-from svcode_core.baselines.self_registration import MAX_LENS_RESIDUAL_PX, self_register
-from svcode_core.calibration import calibrate
-from svcode_core.cm2 import CM2Operator
 from svcode_core.config import SystemConfig
-from svcode_core.departures import Departures
-from svcode_core.metrics import psnr
+from svcode_core.evaluation.metrics import psnr
+from svcode_core.methods.baselines import reconstruct_with_baseline
+from svcode_core.methods.baselines.self_registration import MAX_LENS_RESIDUAL_PX, self_register
 from svcode_core.phantoms import HELD_OUT_IMAGES, held_out_image
-from svcode_core.scan import scan_grid, simulate_scan, with_dark_offset
-from svcode_core.simulate import Simulator
+from svcode_core.physics.calibration import calibrate
+from svcode_core.physics.cm2 import CM2Operator
+from svcode_core.physics.departures import Departures
+from svcode_core.physics.scan import scan_grid, simulate_scan, with_dark_offset
+from svcode_core.physics.simulate import Simulator
 
 RESULTS = Path(__file__).with_name("results")
 #: the drift checked by default: array shift and turn plus per-lens jitter

@@ -6,9 +6,9 @@ automatically from ``system.rank_tolerance`` ("auto", per lens), it measures
 * the captured PSF energy of the rank-K SVD of each lens's PSF grid (min and mean over the
   nine lenses);
 * the relative L2 error of one lens image against the exact per-pixel SV convolution
-  (:func:`svcode_core.reference.lowrank_error`: float64, the same cubic interpolation of the
+  (:func:`svcode_core.physics.reference.lowrank_error`: float64, the same cubic interpolation of the
   PSF grid, object on the grid enlarged by the kernel radius, as in
-  :class:`~svcode_core.cm2.CM2Operator`), on a sparse bead object — the reference costs per
+  :class:`~svcode_core.physics.cm2.CM2Operator`), on a sparse bead object — the reference costs per
   nonzero object pixel × kernel area × PSF-grid size. All nine lenses are measured at
   ``cm2-mini``; at ``cm2-v2`` the centre lens (4) and a corner lens (0), on the full-size
   object with fewer beads. The exact reference's time per lens is reported beside the
@@ -17,14 +17,14 @@ automatically from ``system.rank_tolerance`` ("auto", per lens), it measures
   and per lens image of the centre lens (float32, the unit cost of a frame); median and
   minimum of several calls after a warm-up. Each frame operator is built and run in a
   fresh process under an address-space limit, with the default memory budget of the
-  operator (:data:`~svcode_core.lowrank.DEFAULT_MEMORY_BUDGET`); its peak memory (the
+  operator (:data:`~svcode_core.physics.lowrank.DEFAULT_MEMORY_BUDGET`); its peak memory (the
   rise of the peak resident set over the process before building, and the peak resident
   set of the whole process) is reported beside the time;
 * memory and time of a frame against the field size at a fixed K: ``cm2-mini`` at S, 2S
-  and 4S (:func:`svcode_core.footprint.doubled_system`: sensor lengths doubled, optics
+  and 4S (:func:`svcode_core.evaluation.footprint.doubled_system`: sensor lengths doubled, optics
   unchanged), with the default budget and with a small one;
 * for ``cm2-mini``, the time to simulate a frame including noise with
-  :meth:`svcode_core.simulate.Simulator.simulate` (which also computes the nine noiseless
+  :meth:`svcode_core.physics.simulate.Simulator.simulate` (which also computes the nine noiseless
   demixing targets, a second pass through the lens blur);
 * a peer implementation of the same operator: pylops ``NonStationaryConvolve2D`` (numba
   engine), a direct method that interpolates the G×G grid filters bilinearly at every
@@ -36,7 +36,7 @@ automatically from ``system.rank_tolerance`` ("auto", per lens), it measures
   automatic K (the operator the system uses for the same PSF field). deepinv's
   ``SpaceVaryingBlur`` is reported as not installable beside this torch build.
 
-Torch, numba and BLAS use 2 threads. PSFs come from :func:`svcode_core.optics.system_psfs`.
+Torch, numba and BLAS use 2 threads. PSFs come from :func:`svcode_core.physics.optics.system_psfs`.
 Results go to ``bench/results/forward.json`` and ``forward.md``.
 
 Run: ``python bench/forward.py [--quick] [--presets cm2-mini cm2-v2] [--memory-gib 10]``
@@ -79,13 +79,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from svcode_core.cm2 import CM2Operator
 from svcode_core.config import N_LENSES, SystemConfig
-from svcode_core.footprint import PeakMemory, doubled_system
-from svcode_core.lowrank import DEFAULT_MEMORY_BUDGET, LowRankSVOperator, decompose_psfs
+from svcode_core.evaluation.footprint import PeakMemory, doubled_system
 from svcode_core.phantoms import make_object
-from svcode_core.reference import lowrank_error
-from svcode_core.simulate import Simulator
+from svcode_core.physics.cm2 import CM2Operator
+from svcode_core.physics.lowrank import DEFAULT_MEMORY_BUDGET, LowRankSVOperator, decompose_psfs
+from svcode_core.physics.reference import lowrank_error
+from svcode_core.physics.simulate import Simulator
 
 THREADS = int(os.environ["NUMBA_NUM_THREADS"])
 RESULTS = Path(__file__).parent / "results"
@@ -421,7 +421,7 @@ def deepinv_status() -> str:
 
 # ----------------------------------------------------------------------- main
 def system_psfs(system: SystemConfig) -> np.ndarray:
-    from svcode_core.optics import system_psfs as compute
+    from svcode_core.physics.optics import system_psfs as compute
 
     return np.asarray(compute(system))
 
@@ -627,7 +627,7 @@ def markdown(report: dict) -> str:
             "",
             f"Sub-view {obj['size']}², kernel {optics['kernel_size']}², PSF grid "
             f"{optics['psf_grid']}², lens images on {obj['size'] + 2 * result['margin']}² "
-            f"(margin {result['margin']}); PSFs from `svcode_core.optics.system_psfs` "
+            f"(margin {result['margin']}); PSFs from `svcode_core.physics.optics.system_psfs` "
             f"({result['psf_seconds']:.1f} s); automatic K per lens {result['auto_ranks']}. "
             f"Object: beads of radius {obj['radius_px'][0]}–{obj['radius_px'][1]} px, "
             f"{obj['density_per_100x100']} per 100² px, {obj['nonzero_pixels']} nonzero "

@@ -19,12 +19,13 @@ from pathlib import Path
 import numpy as np
 
 from svcode_core import Reconstructor
-from svcode_core.metrics import image_quality
-from svcode_core.network import SVCoDe, load_model
+from svcode_core.evaluation.metrics import image_quality
+from svcode_core.methods.model_file import load_model
+from svcode_core.network import SVCoDe
 from svcode_core.network.lattice import encoding_error_bound
 from svcode_core.phantoms import make_object
+from svcode_core.physics.simulate import Simulator
 from svcode_core.pretrained import require_bundled_weights
-from svcode_core.simulate import Simulator
 
 RESULTS = Path(__file__).parent / "results"
 SCENES = ("cells", "vessels", "neurons", "beads")

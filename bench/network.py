@@ -21,10 +21,11 @@ once with ``torch.utils.flop_counter`` (convolutions and matrix products: elemen
 work such as the masks themselves is not counted), and GFLOP/s is that count over the
 wall latency.
 
-Peak memory: every variant runs in a fresh process; a sampling thread reads the process
-resident set size (psutil) every 2 ms and the peak above the level just before the first
-call is reported (it includes the mask cache). ``tracemalloc`` cannot see torch's
-allocations, hence RSS. Results go to bench/results/network.json and network.md.
+Peak memory: every variant runs in a fresh process; the rise of the process's peak resident
+set size over the timed calls is reported (it includes the mask cache), read by
+:class:`svcode_core.evaluation.footprint.PeakMemory` (Linux; empty elsewhere).
+``tracemalloc`` cannot see torch's allocations, hence RSS. Results go to
+bench/results/network.json and network.md.
 
 Run: ``OMP_NUM_THREADS=2 python bench/network.py [--iters 5] [--paper-iters 2] [--scales ...]``
 """
@@ -36,14 +37,14 @@ import json
 import statistics
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
-import psutil
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
+from svcode_core.config import DEFAULT_MEMORY_BUDGET
+from svcode_core.evaluation.footprint import PeakMemory
 from svcode_core.network import ModelConfig, SVCoDe
 
 RESULTS = Path(__file__).parent / "results"
@@ -54,32 +55,6 @@ SCALES = {
 }
 VARIANTS = ("plain", "lattice", "uncached", "cached", "cached-full")
 SCALE_VARIANTS = {"cm2-mini": VARIANTS[:4], "training": VARIANTS[:3], "paper": VARIANTS}
-DEFAULT_BUDGET = 2**30
-
-
-class PeakRSS:
-    """Peak resident memory above the level at entry, sampled by a thread."""
-
-    def __enter__(self) -> PeakRSS:
-        self._process = psutil.Process()
-        self.base = self.peak = self._process.memory_info().rss
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._sample, daemon=True)
-        self._thread.start()
-        return self
-
-    def _sample(self) -> None:
-        while not self._stop.is_set():
-            self.peak = max(self.peak, self._process.memory_info().rss)
-            time.sleep(0.002)
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join()
-
-    @property
-    def megabytes(self) -> float:
-        return (self.peak - self.base) / 2**20
 
 
 def measure(scale: str, variant: str, iters: int, threads: int) -> dict:
@@ -100,10 +75,10 @@ def measure(scale: str, variant: str, iters: int, threads: int) -> dict:
     origins = [[(i // 2) * spec["stride"], (i % 2) * spec["stride"]] for i in range(batch)]
     sub_view = tile if variant == "cached-full" else spec["sub_view"]
     if variant.startswith("cached"):
-        model.cache_masks(max_bytes=max(DEFAULT_BUDGET, model.mask_field_bytes(sub_view))
-                          if variant == "cached-full" else DEFAULT_BUDGET)
+        model.cache_masks(max_bytes=max(DEFAULT_MEMORY_BUDGET, model.mask_field_bytes(sub_view))
+                          if variant == "cached-full" else DEFAULT_MEMORY_BUDGET)
     times, cpu_times = [], []
-    with PeakRSS() as rss, torch.inference_mode():
+    with PeakMemory() as rss, torch.inference_mode():
         model(views, origins, sub_view)  # warm-up (fills the cache)
         for _ in range(iters):
             start, cpu = time.perf_counter(), time.process_time()
@@ -123,7 +98,7 @@ def measure(scale: str, variant: str, iters: int, threads: int) -> dict:
         "cpu_s": statistics.median(cpu_times),
         "gflop": counter.get_total_flops() / 1e9,
         "gflop_per_s": counter.get_total_flops() / 1e9 / statistics.median(times),
-        "peak_mib": rss.megabytes,
+        "peak_mib": rss.mib,
         "cache_mib": info["bytes"] / 2**20,
         "field_mib": field / 2**20,
         "sub_view": sub_view,

@@ -37,18 +37,19 @@ import numpy as np
 import torch
 from scipy.ndimage import gaussian_filter
 
-from svcode_core.config import OpticsConfig, SystemConfig, _system_from_scale
-from svcode_core.footprint import PeakMemory
-from svcode_core.geometry import (
+from svcode_core.config import OpticsConfig, SystemConfig, system_from_scale
+from svcode_core.evaluation.footprint import PeakMemory
+from svcode_core.evaluation.metrics import psnr
+from svcode_core.methods.svcode import DEFAULT_MASK_CACHE_BYTES, Reconstructor
+from svcode_core.methods.tiling import exhaust, iter_tiled
+from svcode_core.physics.geometry import (
     crop_to_sensor,
     extract_sub_views,
     pad_sensor_frame,
     place_sub_views,
 )
-from svcode_core.noise import apply_sensor_noise
-from svcode_core.parallel import dask_client, dask_frames
-from svcode_core.reconstruct import DEFAULT_MASK_CACHE_BYTES, Reconstructor
-from svcode_core.tiling import exhaust, iter_tiled
+from svcode_core.physics.noise import apply_sensor_noise
+from svcode_core.run.parallel import dask_client, dask_frames
 
 RESULTS = Path(__file__).parent / "results"
 PATCH = 32
@@ -60,7 +61,7 @@ def make_system(size: int) -> SystemConfig:
     pitch = 3 * size // 8
     side = size + 2 * pitch
     optics = OpticsConfig(psf_grid=3, kernel_size=9, airy_radius=1.0, pupil_samples=32)
-    system = _system_from_scale(
+    system = system_from_scale(
         f"bench-{size}", (3 * side // 4, side), size, pitch, PATCH, optics, 1e-2
     )
     return system.validate()
@@ -186,7 +187,7 @@ def memory_scaling(base: int) -> dict:
 
 
 def _psnr(x: np.ndarray, ref: np.ndarray) -> float:
-    return float(10 * np.log10(ref.max() ** 2 / np.mean((x - ref) ** 2)))
+    return psnr(ref, x, float(ref.max()))
 
 
 def sparse_scene(size: int, beads: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

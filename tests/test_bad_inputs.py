@@ -13,9 +13,9 @@ import tifffile
 import torch
 
 from svcode_core import outputs
-from svcode_core.baselines import reconstruct_with_baseline
 from svcode_core.cli import main
 from svcode_core.io import read_tiff, write_tiff
+from svcode_core.methods.baselines import reconstruct_with_baseline
 from svcode_core.outputs import OutputLock
 
 BOOKKEEPING = (".partial", ".done.npy", ".resume.json", ".lock")
@@ -128,12 +128,12 @@ def test_simulate_onto_its_object_or_system_is_refused(tiny_system, scene, capsy
 # ------------------------------------------------------- 2. outputs checked before work
 def _no_work(monkeypatch):
     """Make building any reconstructor fail loudly: the check must come first."""
-    from svcode_core.baselines import BaselineSpec
+    from svcode_core.methods.build import MethodSpec
 
     def refuse(self):
         raise AssertionError("the reconstructor was built before the output check")
 
-    monkeypatch.setattr(BaselineSpec, "__call__", refuse)
+    monkeypatch.setattr(MethodSpec, "__call__", refuse)
 
 
 def test_out_an_existing_directory_is_refused_first(scene, capsys, monkeypatch):
@@ -297,7 +297,7 @@ def test_bad_frame_deep_in_a_stack_is_refused_before_any_work(scene, tiny_system
 
 
 def test_the_core_rule_holds_for_the_api(tiny_system):
-    from svcode_core.frames import as_frame_stack
+    from svcode_core.methods.frames import as_frame_stack
 
     frame = np.linspace(0, 1, np.prod(tiny_system.sensor_shape), dtype=np.float32)
     frame = frame.reshape(tiny_system.sensor_shape)
@@ -428,7 +428,7 @@ def test_failed_runs_leave_nothing_behind(scene, weights, tiny_system, capsys, c
 
 
 def test_a_run_failing_midway_removes_its_partial_files(scene, tiny_system, capsys, monkeypatch):
-    from svcode_core.baselines import BaselineReconstructor
+    from svcode_core.methods.baselines import BaselineReconstructor
 
     stack = np.full((4, *tiny_system.sensor_shape), 0.4, np.float32)
     write_tiff(scene / "stack.tif", stack, tiny_system)
@@ -448,7 +448,7 @@ def test_a_run_failing_midway_removes_its_partial_files(scene, tiny_system, caps
 
 
 def test_an_interrupted_run_keeps_its_files_and_resumes(scene, tiny_system, capsys, monkeypatch):
-    from svcode_core.baselines import BaselineReconstructor
+    from svcode_core.methods.baselines import BaselineReconstructor
 
     stack = np.stack([np.full(tiny_system.sensor_shape, 0.1 * (i + 1), np.float32)
                       for i in range(4)])  # fmt: skip

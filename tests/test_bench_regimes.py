@@ -5,7 +5,7 @@ import json
 import numpy as np
 
 from svcode_core.cli import main
-from svcode_core.cli.bench import INVERSE_CRIME, REGIMES, SCENES, merge_reports
+from svcode_core.evaluation.bench import INVERSE_CRIME, REGIMES, SCENES, merge_reports
 from svcode_core.phantoms import HELD_OUT_IMAGES
 
 

@@ -6,16 +6,16 @@ import numpy as np
 import pytest
 import torch
 
-from svcode_core.calibration import CalibrationError, calibrate, read_positions
 from svcode_core.cli import main
-from svcode_core.cm2 import CM2Operator
 from svcode_core.config import SystemConfig
-from svcode_core.departures import Departures
-from svcode_core.instrument import departed_system
 from svcode_core.io import read_tiff, write_tiff
-from svcode_core.psf_io import load_measured_psfs, positions_path
-from svcode_core.scan import scan_grid, simulate_scan, with_dark_offset, write_positions
-from svcode_core.simulate import Simulator
+from svcode_core.physics.calibration import CalibrationError, calibrate, read_positions
+from svcode_core.physics.cm2 import CM2Operator
+from svcode_core.physics.departures import Departures
+from svcode_core.physics.instrument import departed_system
+from svcode_core.physics.psf_io import load_measured_psfs, positions_path
+from svcode_core.physics.scan import scan_grid, simulate_scan, with_dark_offset, write_positions
+from svcode_core.physics.simulate import Simulator
 
 #: Larger than the ``calibration`` set (scaled to the tiny system's 1-px Airy radius it
 #: moves the lenses by a quarter pixel), so that the fit has something to find.
@@ -27,18 +27,9 @@ TOLERANCE = 1e-3
 
 
 @pytest.fixture(scope="module")
-def scan():
+def scan(tiny_system):
     """A 7×7 bead scan of the tiny system through DEPARTURES, with its dark stack."""
-    from svcode_core.config import _system_from_scale
-
-    base = SystemConfig.preset("cm2-mini")
-    tiny = _system_from_scale(
-        "tiny", sensor_shape=(60, 80), sub_view_size=48, pitch=18, patch_size=16,
-        optics=base.optics.__class__(psf_grid=3, kernel_size=9, airy_radius=1.0,
-                                     pupil_samples=32, distortion=0.5),
-        rank_tolerance=1e-2,
-    )  # the conftest tiny system, module-scoped
-    system = with_dark_offset(tiny, BLACK_LEVEL)
+    system = with_dark_offset(tiny_system, BLACK_LEVEL)
     simulator = Simulator(system, departures=DEPARTURES)
     positions = scan_grid(system, 7)
     frames, dark = simulate_scan(simulator, positions, seed=1)
@@ -130,7 +121,8 @@ def test_bad_scans_name_the_frame(scan):
         calibrate(frames[:, :, :79], positions, system, dark=dark)
 
 
-def test_calibrate_command_and_every_command_uses_the_system(scan, tmp_path, capsys):
+def test_calibrate_command_and_every_command_uses_the_system(scan, tiny_model_config, tmp_path,
+                                                             capsys):
     system, _, positions, frames, dark, _ = scan
     nominal = system.save(tmp_path / "nominal.json")
     write_tiff(tmp_path / "scan.tif", frames, system, kind="scan")
@@ -177,12 +169,8 @@ def test_calibrate_command_and_every_command_uses_the_system(scan, tmp_path, cap
     assert main(["dataset", "--system", calibrated_json, "--frames", "2", "--out",
                  str(data), "--no-progress"]) == 0
     assert SystemConfig.load(data / "system.json") == calibrated
-    from svcode_core.network import ModelConfig
-
     model = tmp_path / "model.json"
-    model.write_text(ModelConfig(width=4, view_width=1, demix_enc_blocks=(1,),
-                                 demix_dec_blocks=(1,), recon_enc_blocks=(1,),
-                                 recon_dec_blocks=(1,), mlp_hidden=8, pe_bands=2).to_json())
+    model.write_text(tiny_model_config.to_json())
     assert main(["train", "--data", str(data), "--out", str(tmp_path / "run"), "--epochs", "1",
                  "--model-config", str(model), "--batch-size", "2", "--patches-per-epoch", "2",
                  "--val-patches", "1", "--device", "cpu", "--no-progress"]) == 0

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from svcode_core.departures import Departures
-from svcode_core.simulate import Simulator
+from svcode_core.physics.departures import Departures
+from svcode_core.physics.simulate import Simulator
 from svcode_core.training import dataset as dataset_module
 from svcode_core.training.dataset import (
     DataRecipe,

@@ -10,21 +10,21 @@ import torch
 
 from svcode_core.cli import main
 from svcode_core.config import ConfigError, NoiseConfig
-from svcode_core.departures import NAMED_SETS, Departures, load_departures
-from svcode_core.instrument import Instrument, haze, sensor_model
 from svcode_core.io import read_tiff
-from svcode_core.noise import SensorModel, quantize
-from svcode_core.simulate import Simulator
+from svcode_core.physics.departures import NAMED_SETS, Departures, load_departures
+from svcode_core.physics.instrument import Instrument, haze, sensor_model
+from svcode_core.physics.noise import SensorModel, quantize
+from svcode_core.physics.simulate import Simulator
 
 
 @pytest.fixture(scope="module")
 def tiny():
-    from svcode_core.config import SystemConfig, _system_from_scale
+    from svcode_core.config import SystemConfig, system_from_scale
 
     base = SystemConfig.preset("cm2-mini")
     optics = dataclasses.replace(base.optics, psf_grid=3, kernel_size=15, airy_radius=1.5,
                                  pupil_samples=32, distortion=0.5)
-    return _system_from_scale("tiny", (60, 80), 48, 18, 16, optics, 1e-2).validate()
+    return system_from_scale("tiny", (60, 80), 48, 18, 16, optics, 1e-2).validate()
 
 
 @pytest.fixture(scope="module")
@@ -282,7 +282,7 @@ def test_instrument_reuses_the_operator_when_only_the_camera_changes(tiny):
 
 
 def test_pupil_offset_and_defocus_of_one_psf(tiny):
-    from svcode_core.optics import lens_psfs, system_psfs
+    from svcode_core.physics.optics import lens_psfs, system_psfs
 
     base = lens_psfs(tiny, 4, [(0.0, 0.0)])[0]
     np.testing.assert_array_equal(lens_psfs(tiny, 4, [(0.0, 0.0)], defocus=0.0)[0], base)

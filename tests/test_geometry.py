@@ -2,12 +2,10 @@ import numpy as np
 import pytest
 import torch
 
-from svcode_core.geometry import (
-    crop_to_sensor,
+from svcode_core.physics.geometry import (
     extract_sub_views,
     normalized_coordinates,
     pad_sensor_frame,
-    place_sub_views,
     sub_view_origins,
 )
 
@@ -30,28 +28,6 @@ def test_sub_view_centred_on_chief_ray(mini_system):
     half = mini_system.sub_view_size // 2
     for lens in range(9):
         assert views[lens, half, half].item() == lens + 1
-
-
-@pytest.mark.parametrize("dtype, tol", [(torch.float32, 1e-5), (torch.float64, 1e-12)])
-@pytest.mark.parametrize("margin", [0, 4])
-def test_extract_place_adjoint(tiny_system, dtype, tol, margin):
-    gen = torch.Generator().manual_seed(0)
-    frame = torch.randn(2, *tiny_system.padded_shape, generator=gen, dtype=dtype)
-    size = tiny_system.sub_view_size + 2 * margin
-    views = torch.randn(2, 9, size, size, generator=gen, dtype=dtype)
-    lhs = (extract_sub_views(frame, tiny_system, margin) * views).sum()
-    rhs = (frame * place_sub_views(views, tiny_system, margin)).sum()
-    assert abs(lhs - rhs) <= tol * abs(lhs)
-
-
-@pytest.mark.parametrize("dtype, tol", [(torch.float32, 1e-5), (torch.float64, 1e-12)])
-def test_crop_pad_adjoint(tiny_system, dtype, tol):
-    gen = torch.Generator().manual_seed(1)
-    frame = torch.randn(*tiny_system.padded_shape, generator=gen, dtype=dtype)
-    sensor = torch.randn(*tiny_system.sensor_shape, generator=gen, dtype=dtype)
-    lhs = (crop_to_sensor(frame, tiny_system) * sensor).sum()
-    rhs = (frame * pad_sensor_frame(sensor, tiny_system)).sum()
-    assert abs(lhs - rhs) <= tol * abs(lhs)
 
 
 def test_out_of_frame_crops_are_zero(tiny_system):

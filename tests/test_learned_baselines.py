@@ -7,18 +7,18 @@ import pytest
 import torch
 from skimage.restoration import wiener
 
-from svcode_core.baselines.deconv import unit_centre_psfs
-from svcode_core.cm2 import CM2Operator
-from svcode_core.geometry import assemble_frame, extract_sub_views, place_sub_views
-from svcode_core.learned_baselines import (
+from svcode_core.methods.baselines.deconv import unit_centre_psfs
+from svcode_core.methods.learned import (
     FourierNetConfig,
     MultiWienerConfig,
     MultiWienerNet,
     SVFourierNet,
     lens_offsets,
 )
-from svcode_core.network import load_model, read_model_metadata, save_model
-from svcode_core.simulate import Simulator
+from svcode_core.methods.model_file import load_model, read_model_metadata, save_model
+from svcode_core.physics.cm2 import CM2Operator
+from svcode_core.physics.geometry import assemble_frame, extract_sub_views, place_sub_views
+from svcode_core.physics.simulate import Simulator
 from svcode_core.training import (
     DataRecipe,
     FrameDataset,
@@ -251,8 +251,9 @@ def test_train_command_trains_a_baseline(tiny_data, tmp_path, capsys):
 
 @pytest.mark.parametrize("method", sorted(BUILDERS))
 def test_reconstructor_matches_the_model_and_refuses_bad_input(method, operator, tmp_path):
-    from svcode_core.geometry import pad_sensor_frame
-    from svcode_core.learned_baselines import LearnedReconstructor, LearnedSpec
+    from svcode_core.methods.build import MethodSpec
+    from svcode_core.methods.learned.reconstruct import LearnedReconstructor
+    from svcode_core.physics.geometry import pad_sensor_frame
 
     system = operator.system
     model = BUILDERS[method](operator).eval()
@@ -260,7 +261,7 @@ def test_reconstructor_matches_the_model_and_refuses_bad_input(method, operator,
     frames, _ = _scene(operator, batch=2)
     (top, left), (rows, cols) = system.padding, system.sensor_shape
     raw = frames[:, top : top + rows, left : left + cols].numpy()
-    rec = LearnedSpec(method, str(path), system)()
+    rec = MethodSpec(method, system, str(path))()
     result = rec.reconstruct(raw)
     with torch.no_grad():
         expected = model(pad_sensor_frame(torch.from_numpy(raw), system))[:, 0].numpy()
@@ -302,7 +303,7 @@ def test_reconstruct_command_runs_a_learned_baseline(operator, tmp_path, capsys)
 
 
 def test_footprint_grows_with_the_field_for_the_baselines_only(operator, tmp_path):
-    from svcode_core.footprint import doubled_system, model_footprint
+    from svcode_core.evaluation.footprint import doubled_system, model_footprint
     from svcode_core.network import ModelConfig, SVCoDe
 
     system = operator.system
@@ -325,7 +326,7 @@ def test_footprint_grows_with_the_field_for_the_baselines_only(operator, tmp_pat
 
 
 def test_benchmark_rows_of_a_learned_baseline_and_merge(operator, tmp_path):
-    from svcode_core.cli.bench import Scene, learned_rows, merge_reports
+    from svcode_core.evaluation.bench import Scene, learned_rows, merge_reports
 
     system = operator.system
     path = save_model(tmp_path / "mw.safetensors", BUILDERS["multiwiener"](operator), system)

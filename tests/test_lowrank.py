@@ -8,7 +8,7 @@ import scipy.ndimage
 import scipy.signal
 import torch
 
-from svcode_core.lowrank import (
+from svcode_core.physics.lowrank import (
     InterpolatedMaps,
     LowRankSVOperator,
     coefficient_maps,
@@ -57,32 +57,7 @@ def place(kernel: np.ndarray, shape: tuple[int, int], pixel: tuple[int, int]) ->
 # --------------------------------------------------------------------------- operator
 
 
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-@pytest.mark.parametrize(
-    ("shape", "kernel_shape", "lenses"),
-    [
-        ((20, 20), (5, 5), None),
-        ((17, 23), (5, 9), None),
-        ((12, 9), (7, 3), None),
-        ((5, 6), (9, 11), None),  # kernel larger than the image
-        ((11, 14), (5, 3), 3),
-    ],
-)
-def test_adjoint_dot_product(dtype, shape, kernel_shape, lenses):
-    op = random_operator(shape, kernel_shape, lenses=lenses, dtype=dtype)
-    generator = torch.Generator().manual_seed(1)
-    x = torch.randn(2, 3, *shape, generator=generator, dtype=dtype)
-    out_shape = (2, 3, *shape) if lenses is None else (2, 3, lenses, *shape)
-    y = torch.randn(*out_shape, generator=generator, dtype=dtype)
-    ax = op.forward(x)
-    aty = op.adjoint(y)
-    assert ax.shape == out_shape and aty.shape == x.shape
-    lhs = (ax.double() * y.double()).sum()
-    rhs = (x.double() * aty.double()).sum()
-    scale = ax.double().norm() * y.double().norm()
-    assert abs(lhs - rhs) / scale <= TOLERANCE[dtype]
-
-
+# Adjointness of the operator: test_adjoints.py.
 # Chunks that split 5 lenses and 7 components unevenly (2+2+1 and 3+3+1, 4+1 and 2+2+2+1),
 # one term at a time, and a single chunk; the budget keeps either no kernel spectrum or all.
 UNEVEN_CHUNKS = [(2, 3), (4, 2), (1, 1), (5, 7)]

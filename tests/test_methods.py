@@ -8,7 +8,6 @@ import shlex
 import numpy as np
 import pytest
 
-from svcode_core.baselines import BaselineReconstructor, reconstruct_with_baseline
 from svcode_core.cli import build_parser
 from svcode_core.cli.reconstruct import METHODS as CLI_METHODS
 from svcode_core.methods import (
@@ -19,9 +18,11 @@ from svcode_core.methods import (
     reconstruct_with_method,
     reconstructor_defaults,
 )
-from svcode_core.network import ModelConfig, SVCoDe
-from svcode_core.reconstruct import FrameProgress, Reconstructor
-from svcode_core.tiling import exhaust
+from svcode_core.methods.base import FrameProgress
+from svcode_core.methods.baselines import BaselineReconstructor, reconstruct_with_baseline
+from svcode_core.methods.svcode import Reconstructor
+from svcode_core.methods.tiling import exhaust
+from svcode_core.network import SVCoDe
 
 
 def _frames(system, count: int) -> np.ndarray:
@@ -48,25 +49,16 @@ def test_a_named_baseline_matches_its_reconstructor(tiny_system):
                       BaselineReconstructor)
 
 
-def test_iter_method_yields_progress_for_any_method(tiny_system):
+def test_iter_method_yields_progress_for_any_method(tiny_system, tiny_model_config, drain):
     stack = _frames(tiny_system, 2)
     rl = build_reconstructor("rl", tiny_system, iterations=2)
-    steps = iter_method(rl, stack, return_views=True)
-    progress = []
-    while True:
-        try:
-            progress.append(next(steps))
-        except StopIteration as stop:
-            result = stop.value
-            break
+    progress, result = drain(iter_method(rl, stack, return_views=True))
     assert progress == [FrameProgress(0, 2, 0, 1), FrameProgress(1, 2, 0, 1)]
     expected = rl.reconstruct(stack, return_views=True)
     np.testing.assert_allclose(result.reconstruction, expected.reconstruction, atol=1e-6)
     assert result.views.shape == expected.views.shape
 
-    model = SVCoDe(ModelConfig(width=4, view_width=2, demix_enc_blocks=(1,),
-                               demix_dec_blocks=(1,), recon_enc_blocks=(1,),
-                               recon_dec_blocks=(1,), mlp_hidden=8, pe_bands=2).validate())
+    model = SVCoDe(tiny_model_config)
     svcode = build_reconstructor("svcode", tiny_system, model=model, batch_size=4)
     single = exhaust(iter_method(svcode, stack[0]))
     np.testing.assert_allclose(single.reconstruction, svcode.reconstruct(stack[0]).reconstruction)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from svcode_core.metrics import field_zones, image_quality, psnr, ssim
+from svcode_core.evaluation.metrics import field_zones, image_quality, psnr, ssim
 
 
 @pytest.fixture

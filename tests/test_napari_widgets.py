@@ -23,25 +23,28 @@ from napari_svcode.widgets import (  # noqa: E402
 )
 from napari_svcode.widgets.reconstruct import STEPS  # noqa: E402
 from svcode_core.config import SystemConfig  # noqa: E402
-from svcode_core.network import ModelConfig, SVCoDe, save_model  # noqa: E402
-from svcode_core.reconstruct import FrameProgress, Reconstructor  # noqa: E402
+from svcode_core.methods.base import FrameProgress  # noqa: E402
+from svcode_core.methods.model_file import save_model
+from svcode_core.methods.svcode import Reconstructor  # noqa: E402
+from svcode_core.network import SVCoDe  # noqa: E402
 
 pytestmark = pytest.mark.gui
 
 IMAGES = Path(__file__).resolve().parents[1] / "docs" / "images"
 COMPARE_ADMM_ITERATIONS = 10
-TINY_MODEL = ModelConfig(width=4, view_width=2, demix_enc_blocks=(1,), demix_dec_blocks=(1,),
-                         recon_enc_blocks=(1,), recon_dec_blocks=(1,), mlp_hidden=8, pe_bands=2)
-
-
-def _model_file(path: Path, system: SystemConfig) -> Path:
-    torch.manual_seed(0)
-    return save_model(path, SVCoDe(TINY_MODEL.validate()), system)
+@pytest.fixture
+def model_file(tiny_weights) -> Path:
+    return tiny_weights
 
 
 @pytest.fixture
-def model_file(tmp_path, tiny_system) -> Path:
-    return _model_file(tmp_path / "tiny.safetensors", tiny_system)
+def make_model_file(tiny_model_config):
+    """Save the conftest's tiny SV-CoDe (seed 0) for a system: ``make(path, system)``."""
+    def make(path: Path, system: SystemConfig) -> Path:
+        torch.manual_seed(0)
+        return save_model(path, SVCoDe(tiny_model_config), system)
+
+    return make
 
 
 @pytest.fixture
@@ -112,7 +115,7 @@ def _slow_model(monkeypatch, model_file: Path, system: SystemConfig,
                 seconds: float) -> _SlowModel:
     """Make the Reconstruct widget use a slow copy of the model in ``model_file``."""
     import napari_svcode.widgets.reconstruct as module
-    from svcode_core.network import load_model
+    from svcode_core.methods.model_file import load_model
 
     model = _SlowModel(load_model(model_file)[0], seconds)
     monkeypatch.setattr(module, "cached_model", lambda path, system_: (model, system))
@@ -208,10 +211,10 @@ SCAN_SHIFT = (1.3, -0.7)
 def scan_files(tmp_path, tiny_system) -> dict:
     """A 5×5 bead scan of the tiny system whose lens array is shifted by SCAN_SHIFT:
     ``scan.tif`` (with the nominal system), ``pos.csv``, ``dark.tif``, and the arrays."""
-    from svcode_core.departures import Departures
     from svcode_core.io import write_tiff
-    from svcode_core.scan import scan_grid, simulate_scan, with_dark_offset, write_positions
-    from svcode_core.simulate import Simulator
+    from svcode_core.physics.departures import Departures
+    from svcode_core.physics.scan import scan_grid, simulate_scan, with_dark_offset, write_positions
+    from svcode_core.physics.simulate import Simulator
 
     system = with_dark_offset(tiny_system, 2e-3)
     departed = Simulator(system, departures=Departures(name="shifted", mla_shift_px=SCAN_SHIFT))
@@ -236,7 +239,7 @@ def test_calibrate_from_a_scan_file_draws_the_fitted_rays_and_saves(
         qtbot, monkeypatch, tmp_path, scan_files, make_napari_viewer, errors):
     import threading
 
-    from svcode_core.calibration import calibrate
+    from svcode_core.physics.calibration import calibrate
 
     seen: list[tuple[float, bool]] = []
     original = CalibrationWidget._on_progress
@@ -355,13 +358,14 @@ def test_calibration_errors_are_one_notification_each(qtbot, tmp_path, scan_file
 
 
 def test_a_moved_sub_view_box_keeps_the_bundled_model(qtbot, monkeypatch, tmp_path, tiny_system,
-                                                      make_napari_viewer, errors):
+                                                      make_napari_viewer, errors,
+                                                      make_model_file):
     """The model sees sub-views and coordinates relative to them: moving a box (a chief
     ray) only moves where its sub-view is cut, so the bundled model applies unchanged."""
     import napari_svcode.widgets._choosers as choosers
-    from svcode_core.network import load_model
+    from svcode_core.methods.model_file import load_model
 
-    bundled = _model_file(tmp_path / "tiny.safetensors", tiny_system)
+    bundled = make_model_file(tmp_path / "tiny.safetensors", tiny_system)
     monkeypatch.setattr(choosers, "bundled_model",
                         lambda name=None: bundled if name in (None, "tiny") else None)
     viewer = make_napari_viewer()
@@ -396,7 +400,7 @@ def test_a_moved_sub_view_box_keeps_the_bundled_model(qtbot, monkeypatch, tmp_pa
 
 # ---------------------------------------------------------------- reconstruct
 def test_reconstruct_frames_runs_the_current_frame_first(tiny_system, model_file):
-    from svcode_core.network import load_model
+    from svcode_core.methods.model_file import load_model
 
     model, _ = load_model(model_file)
     rec = Reconstructor(model, tiny_system, batch_size=8)
@@ -452,8 +456,8 @@ def test_reconstruct_cancel_stops_within_a_batch(qtbot, monkeypatch, tiny_system
     assert notices and "cancelled after" in notices[-1]
 
 
-def test_reconstruct_errors_are_notices(qtbot, tmp_path, tiny_system, model_file,
-                                        make_napari_viewer, errors):
+def test_reconstruct_errors_are_notices(make_model_file, qtbot, tmp_path, tiny_system,
+                                       model_file, make_napari_viewer, errors):
     viewer = make_napari_viewer()
     widget = _dock(viewer, ReconstructWidget)
     _use_model(widget, model_file)
@@ -467,7 +471,7 @@ def test_reconstruct_errors_are_notices(qtbot, tmp_path, tiny_system, model_file
     widget._layer.value = viewer.add_image(frame, name="nan", metadata=meta)
     assert widget.start() is None and "1 NaN or Inf" in errors[-1]
 
-    other = _model_file(tmp_path / "other.safetensors", tiny_system.replace(name="other"))
+    other = make_model_file(tmp_path / "other.safetensors", tiny_system.replace(name="other"))
     _use_model(widget, other)
     assert widget.start() is None and "trained for system 'other'" in errors[-1]
     assert "choose a model trained for this system" in errors[-1]
@@ -515,8 +519,8 @@ def test_pickers_fit_their_role_and_tiling_defaults_come_from_the_core(make_napa
 
 
 def test_each_method_shows_only_its_options(make_napari_viewer):
-    from svcode_core.baselines import RL_ITERATIONS, settings_for
     from svcode_core.methods import METHODS
+    from svcode_core.methods.baselines import RL_ITERATIONS, settings_for
 
     viewer = make_napari_viewer()
     viewer.open_sample("napari-svcode", "cells")
@@ -692,12 +696,13 @@ def test_progress_shows_in_the_widget_within_a_second_without_event_processing(
     assert viewer.layers["reconstruction"].data.shape[0] == 3 and not reentered
 
 
-def test_errors_toast_cause_and_fix_and_log_the_full_text(tmp_path, tiny_system, model_file,
-                                                          make_napari_viewer, errors, caplog):
+def test_errors_toast_cause_and_fix_and_log_the_full_text(make_model_file, tmp_path, tiny_system,
+                                                          model_file, make_napari_viewer, errors,
+                                                          caplog):
     viewer = make_napari_viewer()
     widget = _dock(viewer, ReconstructWidget)
     (tmp_path / "deep").mkdir()
-    other = _model_file(tmp_path / "deep" / "other.safetensors",
+    other = make_model_file(tmp_path / "deep" / "other.safetensors",
                         tiny_system.replace(name="other"))
     _use_model(widget, other)
     viewer.add_image(_raw_stack(tiny_system, 1)[0], name="raw",
@@ -801,7 +806,8 @@ def test_simulate_widget_announces_or_refuses_a_large_simulation(
 
 
 # ----------------------------------------------------------------- screenshot
-def test_screenshot_raw_frame_boxes_and_reconstruction(qtbot, tmp_path, make_napari_viewer):
+def test_screenshot_raw_frame_boxes_and_reconstruction(make_model_file, qtbot, tmp_path,
+                                                       make_napari_viewer):
     """The README picture: cm2-mini vessels sample, its sub-views and a reconstruction
     (written to docs/images/napari.png with ``SVCODE_UPDATE_SCREENSHOT=1``)."""
     from napari_svcode._resources import bundled_model
@@ -817,7 +823,7 @@ def test_screenshot_raw_frame_boxes_and_reconstruction(qtbot, tmp_path, make_nap
     _, widget = viewer.window.add_plugin_dock_widget("napari-svcode", "Reconstruct")
     weights = bundled_model(system.name)
     if weights is None:  # until a trained model ships: a random one, one tile a frame
-        weights = _model_file(tmp_path / "mini.safetensors", system)
+        weights = make_model_file(tmp_path / "mini.safetensors", system)
         widget._panel.tile.value = system.sub_view_size
     _use_model(widget, weights)
     widget._layer.value = viewer.layers["vessels raw"]

@@ -9,7 +9,6 @@ import pytest
 import torch
 
 from svcode_core.config import ConfigError
-from svcode_core.geometry import normalized_coordinates
 from svcode_core.network import (
     DemixNet,
     ModelConfig,
@@ -18,16 +17,7 @@ from svcode_core.network import (
     level_coordinates,
     positional_encoding,
 )
-
-TINY = ModelConfig(
-    width=4,
-    view_width=2,
-    demix_enc_blocks=(1, 1),
-    demix_dec_blocks=(1, 1),
-    recon_enc_blocks=(1,),
-    recon_dec_blocks=(1,),
-    mlp_hidden=8,
-)
+from svcode_core.physics.geometry import normalized_coordinates
 
 
 def _randomise_scales(model: torch.nn.Module, value: float = 0.5) -> None:
@@ -38,7 +28,7 @@ def _randomise_scales(model: torch.nn.Module, value: float = 0.5) -> None:
                 param.fill_(value)
 
 
-def _model(config: ModelConfig = TINY, seed: int = 0) -> SVCoDe:
+def _model(config: ModelConfig, seed: int = 0) -> SVCoDe:
     torch.manual_seed(seed)
     model = SVCoDe(config)
     _randomise_scales(model)
@@ -105,18 +95,18 @@ def test_level_coordinates_are_those_of_the_pooled_grid():
 
 # ------------------------------------------------------------------------- shapes
 @pytest.mark.parametrize("shape", [(13, 13), (21, 35), (16, 9)])
-def test_output_shapes_for_any_size(shape):
-    model = _model()
+def test_output_shapes_for_any_size(shape, two_level_model_config):
+    model = _model(two_level_model_config)
     views = torch.rand(2, 9, *shape)
     demixed, recon = model(views, torch.tensor([[0, 0], [-5, 30]]), 48)
     assert demixed.shape == (2, 9, *shape) and recon.shape == (2, 1, *shape)
     assert 0 < demixed.min() and demixed.max() < 1 and 0 < recon.min() and recon.max() < 1
-    assert DemixNet(TINY)(views, [[0, 0], [1, 1]], 48).shape == (2, 9, *shape)
-    assert ReconNet(TINY)(views, [[0, 0], [1, 1]], 48).shape == (2, 1, *shape)
+    assert DemixNet(two_level_model_config)(views, [[0, 0], [1, 1]], 48).shape == (2, 9, *shape)
+    assert ReconNet(two_level_model_config)(views, [[0, 0], [1, 1]], 48).shape == (2, 1, *shape)
 
 
-def test_bad_inputs_raise():
-    model = _model()
+def test_bad_inputs_raise(two_level_model_config):
+    model = _model(two_level_model_config)
     with pytest.raises(ValueError, match="views must have shape"):
         model(torch.rand(1, 8, 16, 16), [[0, 0]], 48)
     with pytest.raises(ValueError, match="NaN"):
@@ -127,8 +117,8 @@ def test_bad_inputs_raise():
         model(torch.rand(2, 9, 16, 16), [[0, 0]], 48)
 
 
-def test_global_coordinates_change_the_output():
-    model = _model()
+def test_global_coordinates_change_the_output(two_level_model_config):
+    model = _model(two_level_model_config)
     views = torch.rand(1, 9, 16, 16)
     with torch.no_grad():
         a = model(views, [[0, 0]], 48)[1]
@@ -160,16 +150,16 @@ def _shift_error(model: SVCoDe) -> float:
     return (torch.roll(recon, (8, 8), (2, 3)) - shifted)[interior].abs().max().item()
 
 
-def test_plain_nafnet_is_translation_equivariant():
-    assert _shift_error(_model(TINY.replace(coord_gate=False))) < 1e-5
+def test_plain_nafnet_is_translation_equivariant(two_level_model_config):
+    assert _shift_error(_model(two_level_model_config.replace(coord_gate=False))) < 1e-5
 
 
-def test_coordinate_gated_model_is_not_translation_equivariant():
-    assert _shift_error(_model()) > 1e-3
+def test_coordinate_gated_model_is_not_translation_equivariant(two_level_model_config):
+    assert _shift_error(_model(two_level_model_config)) > 1e-3
 
 
-def test_coord_gate_off_builds_no_mlp():
-    model = SVCoDe(TINY.replace(coord_gate=False))
+def test_coord_gate_off_builds_no_mlp(two_level_model_config):
+    model = SVCoDe(two_level_model_config.replace(coord_gate=False))
     assert not any(".mlp." in n for n, _ in model.named_parameters())
     assert model.mask_layers() == []
 
@@ -177,8 +167,8 @@ def test_coord_gate_off_builds_no_mlp():
 # ------------------------------------------------------------------- gradients
 @pytest.mark.parametrize("switches", [{}, {"positional_encoding": False},
                                       {"lens_specific_first_block": False}])
-def test_gradient_reaches_every_parameter(switches):
-    model = _model(TINY.replace(**switches))
+def test_gradient_reaches_every_parameter(switches, two_level_model_config):
+    model = _model(two_level_model_config.replace(**switches))
     demixed, recon = model(torch.rand(2, 9, 12, 12), [[0, 0], [30, 4]], 48)
     (demixed.square().mean() + recon.square().mean()).backward()
     for name, param in model.named_parameters():
@@ -189,10 +179,10 @@ def test_gradient_reaches_every_parameter(switches):
 
 # ------------------------------------------------------------------- precision
 @pytest.mark.parametrize("dtype, tolerance", [(torch.bfloat16, 1e-2), (torch.float16, 2e-3)])
-def test_autocast_is_finite_and_close_to_float32(dtype, tolerance):
+def test_autocast_is_finite_and_close_to_float32(dtype, tolerance, two_level_model_config):
     """Absolute tolerance on the (0, 1) outputs: about 2.5 units of the format's epsilon
     (2^-8 for bf16, 2^-11 for fp16); measured 2.2e-3 and 2.9e-4."""
-    model = _model()
+    model = _model(two_level_model_config)
     views = torch.rand(2, 9, 16, 16)
     with torch.no_grad():
         reference = model(views, [[0, 0], [8, 8]], 48)
@@ -203,8 +193,8 @@ def test_autocast_is_finite_and_close_to_float32(dtype, tolerance):
         assert (ref - out.float()).abs().max().item() < tolerance
 
 
-def test_half_model_runs():
-    model = _model()
+def test_half_model_runs(two_level_model_config):
+    model = _model(two_level_model_config)
     views = torch.rand(1, 9, 16, 16)
     with torch.no_grad():
         reference = model(views, [[0, 0]], 48)[1]

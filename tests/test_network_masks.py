@@ -5,24 +5,14 @@ from __future__ import annotations
 import pytest
 import torch
 
-from svcode_core.network import DemixNet, ModelConfig, SVCoDe
+from svcode_core.network import DemixNet, SVCoDe
 from svcode_core.network.encoding import level_coordinates, positional_encoding
-
-TINY = ModelConfig(
-    width=4,
-    view_width=2,
-    demix_enc_blocks=(1, 1),
-    demix_dec_blocks=(1, 1),
-    recon_enc_blocks=(1,),
-    recon_dec_blocks=(1,),
-    mlp_hidden=8,
-)
 
 
 @pytest.fixture
-def model() -> SVCoDe:
+def model(two_level_model_config) -> SVCoDe:
     torch.manual_seed(0)
-    model = SVCoDe(TINY)
+    model = SVCoDe(two_level_model_config)
     with torch.no_grad():
         for name, param in model.named_parameters():
             if name.endswith(("beta", "gamma")):
@@ -61,9 +51,10 @@ def test_cached_and_uncached_outputs_agree(model):
     assert not model.mask_cache_info()["enabled"]  # the context restored "off"
 
 
-def test_tile_cropped_from_the_field_equals_the_tile_masks(model):
+def test_tile_cropped_from_the_field_equals_the_tile_masks(model, two_level_model_config):
     """A cached field entry, cropped at a tile, equals the block's folded masks computed
     for that tile alone, and the folding equals the products of the layer masks."""
+    encoding = (two_level_model_config.pe_bands, two_level_model_config.pe_scheme)
     origin, size, tile = (8, 12), 48, 16
     with torch.no_grad(), model.cache_masks():
         model(torch.rand(1, 9, tile, tile), [origin], size)
@@ -74,7 +65,7 @@ def test_tile_cropped_from_the_field_equals_the_tile_masks(model):
                 step, n = 2**level, tile // 2**level
                 rows = level_coordinates(torch.tensor([origin[0]]), tile, size, level)[level]
                 cols = level_coordinates(torch.tensor([origin[1]]), tile, size, level)[level]
-                enc = [positional_encoding(t, TINY.pe_bands, TINY.pe_scheme) for t in (rows, cols)]
+                enc = [positional_encoding(t, *encoding) for t in (rows, cols)]
                 expected = [m[0] for m in block.folded_masks(*enc)]
                 r, c = origin[0] // step, origin[1] // step
                 for part, want in zip(field, expected, strict=True):
@@ -137,10 +128,10 @@ def test_cache_is_dropped_when_weights_change(model):
     assert _close(cached[0], fresh[0]) and _close(cached[1], fresh[1])  # ... and the cache saw it
 
 
-def test_cache_is_dropped_on_load_state_dict(model):
+def test_cache_is_dropped_on_load_state_dict(model, two_level_model_config):
     views = torch.rand(1, 9, 16, 16)
     torch.manual_seed(5)
-    other = SVCoDe(TINY).state_dict()
+    other = SVCoDe(two_level_model_config).state_dict()
     model.cache_masks()
     with torch.no_grad():
         model(views, [[0, 0]], 48)
@@ -194,19 +185,20 @@ def test_cache_is_bypassed_when_gradients_are_needed(model):
     assert model.demix.view_block.conv1.mlp.w_out.grad.abs().max() > 0
 
 
-def test_coordinate_mask_matches_the_forward_masks(model):
+def test_coordinate_mask_matches_the_forward_masks(model, two_level_model_config):
+    encoding = (two_level_model_config.pe_bands, two_level_model_config.pe_scheme)
     size = 48
     layers = {(m.stage, m.block, m.layer): m for m in model.mask_layers()}
     assert ("demix", "view", "conv1") in layers and ("recon", "middle.0", "conv5") in layers
     info = layers[("demix", "view", "conv2")]
-    assert info.lenses == 9 and info.channels == 2 * TINY.view_width
+    assert info.lenses == 9 and info.channels == 2 * two_level_model_config.view_width
     full = model.coordinate_mask("demix", "view", "conv2", size, lens=4, max_chunk_bytes=4096)
     assert full.shape == (info.channels, size, size)
     # the same layer evaluated for a 16 × 16 tile at (8, 20): a crop of the full field
     gate = model.demix.view_block.conv2
     rows = torch.linspace(-1, 1, size, dtype=torch.float64)
-    enc_r = positional_encoding(rows[8:24], TINY.pe_bands, TINY.pe_scheme)[None]
-    enc_c = positional_encoding(rows[20:36], TINY.pe_bands, TINY.pe_scheme)[None]
+    enc_r = positional_encoding(rows[8:24], *encoding)[None]
+    enc_c = positional_encoding(rows[20:36], *encoding)[None]
     with torch.no_grad():
         tile = gate.masks(enc_r, enc_c)[0, 4]
     torch.testing.assert_close(full[:, 8:24, 20:36], tile, rtol=1e-6, atol=1e-6)
@@ -217,9 +209,9 @@ def test_coordinate_mask_matches_the_forward_masks(model):
         model.coordinate_mask("demix", "view", "conv9", size)
 
 
-def test_demix_net_alone_has_its_own_cache():
+def test_demix_net_alone_has_its_own_cache(two_level_model_config):
     torch.manual_seed(0)
-    net = DemixNet(TINY).eval()
+    net = DemixNet(two_level_model_config).eval()
     views = torch.rand(2, 9, 12, 12)
     with torch.no_grad():
         reference = net(views, [[0, 0], [4, 4]], 48)

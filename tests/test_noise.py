@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from svcode_core.config import NoiseConfig
-from svcode_core.noise import apply_sensor_noise, noise_floor, noise_std
+from svcode_core.physics.noise import apply_sensor_noise, noise_floor, noise_std
 
 N_DRAWS = 200_000
 Z = 5.0  # tolerance in standard errors

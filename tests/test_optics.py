@@ -7,7 +7,7 @@ import tifffile
 from scipy.special import j1
 
 from svcode_core.config import OpticsConfig, SystemConfig
-from svcode_core.optics import (
+from svcode_core.physics.optics import (
     AIRY_ZERO,
     lens_psf,
     lens_psfs,
@@ -15,7 +15,7 @@ from svcode_core.optics import (
     system_psfs,
     transmission,
 )
-from svcode_core.psf_io import load_measured_psfs, positions_path, save_psfs
+from svcode_core.physics.psf_io import load_measured_psfs, positions_path, save_psfs
 
 NO_ABERRATIONS = dict(
     spherical=0.0,

@@ -9,7 +9,7 @@ import torch
 from napari_svcode._sample_data import SAMPLE_KINDS, SAMPLE_SEED
 from svcode_core import Reconstructor, SystemConfig
 from svcode_core.phantoms import make_object
-from svcode_core.simulate import Simulator
+from svcode_core.physics.simulate import Simulator
 
 BAND = 16  # pixels per band: profiles are compared band by band
 MAX_FACTOR = 1.5  # a band may be at most 1.5x brighter or darker than the frame's gain says

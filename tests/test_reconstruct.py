@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from svcode_core.geometry import extract_sub_views, pad_sensor_frame
-from svcode_core.reconstruct import FrameProgress, Reconstructor
-from svcode_core.tiling import Cancelled
+from svcode_core.methods.base import FrameProgress
+from svcode_core.methods.svcode import Reconstructor
+from svcode_core.methods.tiling import Cancelled
+from svcode_core.physics.geometry import extract_sub_views, pad_sensor_frame
 
 
 class IdentityModel(torch.nn.Module):
@@ -195,7 +196,7 @@ def test_unavailable_mps_is_a_clear_error(tiny_system):
 def test_moved_chief_rays_cut_the_same_sub_views_for_the_same_model(tiny_system, tiny_weights):
     """An SV-CoDe model sees sub-views and coordinates relative to them: a system whose
     chief rays moved, given the frame moved with them, gives the same reconstruction."""
-    from svcode_core.network import load_model
+    from svcode_core.methods.model_file import load_model
 
     model, _ = load_model(tiny_weights)
     shift = np.array([2, -3])

@@ -7,8 +7,8 @@ import pytest
 import torch
 from test_lowrank import gaussian_psf_grid, place
 
-from svcode_core.lowrank import LowRankSVOperator, decompose_psfs, interpolation_basis
-from svcode_core.reference import lowrank_error, sv_convolve_reference
+from svcode_core.physics.lowrank import LowRankSVOperator, decompose_psfs, interpolation_basis
+from svcode_core.physics.reference import lowrank_error, sv_convolve_reference
 
 
 def sparse_object(shape, seed=0, fill=0.3):

@@ -8,15 +8,15 @@ import numpy as np
 import pytest
 import torch
 
-from svcode_core.baselines import reconstruct_with_baseline
-from svcode_core.baselines.self_registration import register_recording, self_register
-from svcode_core.cm2 import CM2Operator
 from svcode_core.config import load_system
-from svcode_core.departures import Departures
-from svcode_core.instrument import departed_system
+from svcode_core.methods.baselines import reconstruct_with_baseline
+from svcode_core.methods.baselines.self_registration import register_recording, self_register
 from svcode_core.phantoms import make_object
-from svcode_core.registration import register_views, registered_system
-from svcode_core.simulate import Simulator
+from svcode_core.physics.cm2 import CM2Operator
+from svcode_core.physics.departures import Departures
+from svcode_core.physics.instrument import departed_system
+from svcode_core.physics.registration import register_views, registered_system
+from svcode_core.physics.simulate import Simulator
 
 #: an array moved by about a pixel (the tiny system's lenses are 18 px apart)
 DRIFT = Departures(name="drift", mla_shift_px=(0.8, -0.5), mla_rotation_deg=1.0,
@@ -82,7 +82,7 @@ def test_registered_system_moves_whole_pixels_into_chief_rays(tiny_system):
     assert moved.chief_rays[1:] == tiny_system.chief_rays[1:]
     # the same forward model as the pupil model computed at the moved image points
     x = torch.rand(48, 48, dtype=torch.float64)
-    from svcode_core.optics import system_psfs
+    from svcode_core.physics.optics import system_psfs
 
     reference = system_psfs(moved, offsets=offsets - np.rint(offsets))
     np.testing.assert_allclose(psfs, reference)
@@ -117,9 +117,9 @@ def test_a_registration_no_rigid_array_explains_is_not_applied(drifted, tmp_path
                                                                capsys):
     import tifffile
 
-    import svcode_core.baselines.self_registration as module
+    import svcode_core.methods.baselines.self_registration as module
     from svcode_core.cli import main
-    from svcode_core.registration import Registration
+    from svcode_core.physics.registration import Registration
 
     system, frame = drifted
     residuals = np.zeros((9, 2))

@@ -3,9 +3,9 @@ import pytest
 import torch
 from test_cm2 import gaussian_psfs
 
-from svcode_core.cm2 import CM2Operator
 from svcode_core.io import read_tiff
-from svcode_core.simulate import Simulator
+from svcode_core.physics.cm2 import CM2Operator
+from svcode_core.physics.simulate import Simulator
 
 
 @pytest.fixture

@@ -9,12 +9,13 @@ import pytest
 import torch
 from test_cm2 import gaussian_psfs
 
-from svcode_core.baselines import METHODS, BaselineReconstructor, reconstruct_with_baseline
-from svcode_core.baselines.admm import LsvAdmm
-from svcode_core.cm2 import CM2Operator
-from svcode_core.config import OpticsConfig, SystemConfig, _system_from_scale
-from svcode_core.metrics import psnr
-from svcode_core.noise import apply_sensor_noise
+from svcode_core.config import OpticsConfig, SystemConfig, system_from_scale
+from svcode_core.evaluation.metrics import psnr
+from svcode_core.methods.baselines import BaselineReconstructor, reconstruct_with_baseline
+from svcode_core.methods.baselines.admm import LsvAdmm
+from svcode_core.methods.registry import MODEL_BASED_METHODS
+from svcode_core.physics.cm2 import CM2Operator
+from svcode_core.physics.noise import apply_sensor_noise
 
 OPTIONS = {"admm": {"iterations": 100}, "wiener": {}, "rl": {"iterations": 30}}
 
@@ -32,13 +33,14 @@ def disc(size, value=0.6):
 
 def run_all(system, op, raw):
     return {
-        m: reconstruct_with_baseline(m, raw, system, operator=op, **OPTIONS[m]) for m in METHODS
+        m: reconstruct_with_baseline(m, raw, system, operator=op, **OPTIONS[m])
+        for m in MODEL_BASED_METHODS
     }
 
 
 def test_rho_across_six_decades_reaches_the_same_minimum():
     optics = OpticsConfig(psf_grid=3, kernel_size=5, airy_radius=1.0, pupil_samples=16)
-    system = _system_from_scale("micro", (20, 28), 16, 6, 8, optics, 1e-2).validate()
+    system = system_from_scale("micro", (20, 28), 16, 6, 8, optics, 1e-2).validate()
     op = CM2Operator.from_psfs(system, gaussian_psfs(system), dtype=torch.float64)
     frame = op.forward(disc(16).double())
     frame = apply_sensor_noise(frame, system.noise, torch.Generator().manual_seed(0))
@@ -60,7 +62,7 @@ def test_near_singular_operator():
     """K = 1, vignetting down to 1e-3 at the field edge, sensor a third of the padded frame."""
     base = SystemConfig.preset("cm2-mini")
     optics = base.optics.__class__(psf_grid=3, kernel_size=9, airy_radius=1.0, pupil_samples=32)
-    system = _system_from_scale("stiff", (28, 28), 48, 18, 16, optics, 1e-2).validate()
+    system = system_from_scale("stiff", (28, 28), 48, 18, 16, optics, 1e-2).validate()
     psfs = gaussian_psfs(system)
     coords = np.linspace(-1, 1, 3)
     edge = np.array([max(abs(v), abs(u)) for v in coords for u in coords])
@@ -142,14 +144,14 @@ def test_single_pixel_object(tiny_system, op):
 
 @pytest.mark.parametrize("precision", ["bf16", "fp16"])
 def test_half_precision_is_refused_clearly(tiny_system, precision):
-    for method in METHODS:
+    for method in MODEL_BASED_METHODS:
         with pytest.raises(ValueError, match=f"{precision} is not supported"):
             BaselineReconstructor(method, tiny_system, precision=precision)
 
 
 def test_half_precision_input_is_converted(tiny_system, op):
     raw = op.measure(disc(tiny_system.sub_view_size)).numpy()
-    for method in METHODS:
+    for method in MODEL_BASED_METHODS:
         full = reconstruct_with_baseline(method, raw, tiny_system, operator=op, **OPTIONS[method])
         half = reconstruct_with_baseline(
             method, raw.astype(np.float16), tiny_system, operator=op, **OPTIONS[method]
@@ -162,7 +164,7 @@ def test_half_precision_input_is_converted(tiny_system, op):
 def test_non_finite_frames_raise(tiny_system, op):
     raw = np.zeros(tiny_system.sensor_shape, dtype=np.float32)
     raw[3, 4] = np.inf
-    for method in METHODS:
+    for method in MODEL_BASED_METHODS:
         with pytest.raises(ValueError, match="NaN or Inf"):
             reconstruct_with_baseline(method, raw, tiny_system, operator=op)
 
@@ -171,9 +173,9 @@ def test_non_finite_frames_raise(tiny_system, op):
 def test_network_battery(tiny_system, tiny_weights):
     """The battery of bench/stability.py through a small random SV-CoDe model of the tiny
     system: every case finite (and bounded) or a clear error."""
-    from svcode_core.reconstruct import Reconstructor
-    from svcode_core.simulate import Simulator
-    from svcode_core.stability import run_case, stability_cases
+    from svcode_core.evaluation.stability import run_case, stability_cases
+    from svcode_core.methods.svcode import Reconstructor
+    from svcode_core.physics.simulate import Simulator
 
     def build(precision, skip_empty):
         return Reconstructor.from_weights(tiny_weights, precision=precision,

@@ -11,8 +11,8 @@ import tifffile
 import torch
 
 from svcode_core.io import read_tiff, write_tiff
-from svcode_core.reconstruct import Reconstructor
-from svcode_core.stream import FrameReader, reconstruct_file
+from svcode_core.methods.svcode import Reconstructor
+from svcode_core.run.stream import FrameReader, reconstruct_file
 
 FRAMES = 20
 
@@ -190,7 +190,7 @@ def _cli(argv):
 
 
 def test_cli_reconstructs_a_stack(tiny_system, stack, tmp_path, monkeypatch, capsys):
-    from svcode_core.parallel import ReconstructorSpec
+    from svcode_core.methods.build import MethodSpec
 
     built = []
 
@@ -198,7 +198,7 @@ def test_cli_reconstructs_a_stack(tiny_system, stack, tmp_path, monkeypatch, cap
         built.append(spec)
         return _reconstructor(tiny_system)
 
-    monkeypatch.setattr(ReconstructorSpec, "__call__", build)
+    monkeypatch.setattr(MethodSpec, "__call__", build)
     (tmp_path / "model.safetensors").write_bytes(b"stand-in")
     status = _cli(
         [

@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from svcode_core import Reconstructor, SystemConfig
+from svcode_core.methods.svcode import plan_tiles
 from svcode_core.network import ModelConfig, SVCoDe
 from svcode_core.phantoms import make_object
-from svcode_core.reconstruct import plan_tiles
-from svcode_core.simulate import Simulator
+from svcode_core.physics.simulate import Simulator
 
 
 @pytest.mark.parametrize("config", [ModelConfig.mini(), ModelConfig.reference()])

@@ -7,7 +7,7 @@ import threading
 import numpy as np
 import pytest
 
-from svcode_core.tiling import (
+from svcode_core.methods.tiling import (
     Cancelled,
     TileGrid,
     blend_window,

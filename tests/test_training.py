@@ -9,11 +9,12 @@ import pytest
 import torch
 from test_cm2 import gaussian_psfs
 
-from svcode_core.cm2 import CM2Operator
 from svcode_core.config import SystemConfig
-from svcode_core.geometry import extract_sub_views
-from svcode_core.network import ModelConfig, load_model
-from svcode_core.simulate import Simulator
+from svcode_core.methods.model_file import load_model
+from svcode_core.network import ModelConfig
+from svcode_core.physics.cm2 import CM2Operator
+from svcode_core.physics.geometry import extract_sub_views
+from svcode_core.physics.simulate import Simulator
 from svcode_core.training import (
     DataRecipe,
     EpochSampler,

@@ -6,14 +6,11 @@ import pytest
 import torch
 
 from svcode_core.cli import main
-from svcode_core.network import ModelConfig, load_model
+from svcode_core.methods.model_file import load_model
 from svcode_core.training import TrainingData
 
-TINY_MODEL = ModelConfig(width=4, view_width=1, demix_enc_blocks=(1,), demix_dec_blocks=(1,),
-                         recon_enc_blocks=(1,), recon_dec_blocks=(1,), mlp_hidden=8, pe_bands=2)
 
-
-def test_dataset_then_train(tiny_system, tmp_path, capsys):
+def test_dataset_then_train(tiny_system, tiny_model_config, tmp_path, capsys):
     system_file = tiny_system.save(tmp_path / "tiny.json")
     data = tmp_path / "data"
     assert main(["dataset", "--system", str(system_file), "--frames", "3", "--out", str(data),
@@ -21,7 +18,7 @@ def test_dataset_then_train(tiny_system, tmp_path, capsys):
     assert "3 frames of tiny" in capsys.readouterr().out
     assert len(TrainingData(data).val_frames) == 1
     model_file = tmp_path / "model.json"
-    model_file.write_text(TINY_MODEL.to_json())
+    model_file.write_text(tiny_model_config.to_json())
     run = tmp_path / "run"
     args = ["train", "--data", str(data), "--out", str(run), "--epochs", "1",
             "--model-config", str(model_file), "--ablation", "no-pe", "--batch-size", "2",
@@ -37,17 +34,18 @@ def test_dataset_then_train(tiny_system, tmp_path, capsys):
     assert "differs from 'cm2-mini'" in capsys.readouterr().err
 
 
-def test_train_from_initial_weights(tiny_system, tmp_path, capsys):
+def test_train_from_initial_weights(tiny_system, tiny_model_config, tmp_path, capsys):
     from safetensors.torch import load_file
 
-    from svcode_core.network import SVCoDe, save_model
+    from svcode_core.methods.model_file import save_model
+    from svcode_core.network import SVCoDe
     from svcode_core.training import TrainConfig, Trainer
 
     system_file = tiny_system.save(tmp_path / "tiny.json")
     data = tmp_path / "data"
     assert main(["dataset", "--system", str(system_file), "--frames", "2", "--out", str(data),
                  "--seed", "1", "--val-fraction", "0.5", "--no-progress"]) == 0
-    config = TINY_MODEL
+    config = tiny_model_config
     torch.manual_seed(3)
     weights = save_model(tmp_path / "start.safetensors", SVCoDe(config), tiny_system)
     trainer = Trainer(TrainingData(data), tmp_path / "run", config, TrainConfig(epochs=1),

@@ -22,7 +22,7 @@ import numpy as np
 from napari.layers import Layer
 
 from svcode_core.config import SystemConfig
-from svcode_core.geometry import sub_view_origins
+from svcode_core.physics.geometry import sub_view_origins
 
 from ._errors import notify_error
 

@@ -8,9 +8,9 @@ from pathlib import Path
 import torch
 
 from svcode_core.config import SystemConfig
-from svcode_core.network import load_model
+from svcode_core.methods.model_file import load_model
+from svcode_core.physics.simulate import Simulator
 from svcode_core.pretrained import bundled_weights as bundled_model
-from svcode_core.simulate import Simulator
 
 __all__ = ["NO_BUNDLED_MODEL", "PLACEMENT_FIELDS", "available_devices", "bundled_model",
            "cached_model", "simulator"]
@@ -18,7 +18,7 @@ __all__ = ["NO_BUNDLED_MODEL", "PLACEMENT_FIELDS", "available_devices", "bundled
 
 @functools.lru_cache(maxsize=4)
 def simulator(system: SystemConfig) -> Simulator:
-    """The :class:`~svcode_core.simulate.Simulator` of ``system`` (PSFs built once)."""
+    """The :class:`~svcode_core.physics.simulate.Simulator` of ``system`` (PSFs built once)."""
     return Simulator(system)
 
 

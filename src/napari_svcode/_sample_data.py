@@ -10,7 +10,7 @@ import functools
 
 from svcode_core.config import SystemConfig
 from svcode_core.phantoms import make_object
-from svcode_core.simulate import Simulation
+from svcode_core.physics.simulate import Simulation
 
 from ._layers import layer_metadata, object_translate
 from ._resources import simulator

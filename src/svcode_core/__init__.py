@@ -4,12 +4,12 @@ Physics simulation of computational miniature mesoscopes (CM²), the SV-CoDe net
 tiled inference, training, baselines and metrics. No Qt is imported anywhere here.
 """
 
-from .cm2 import CM2Operator
 from .config import ConfigError, NoiseConfig, OpticsConfig, SystemConfig, load_system
-from .lowrank import LowRankSVOperator
+from .methods.svcode import Reconstructor
 from .network import ModelConfig, SVCoDe
-from .reconstruct import Reconstructor
-from .simulate import Simulator
+from .physics.cm2 import CM2Operator
+from .physics.lowrank import LowRankSVOperator
+from .physics.simulate import Simulator
 
 __version__ = "0.1.0"
 

@@ -24,12 +24,16 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import numbers
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 N_LENSES = 9
+#: one GiB: the default working-memory budget of the forward model, the tiling and the
+#: coordinate-mask cache
+DEFAULT_MEMORY_BUDGET = 1 << 30
 
 __all__ = [
     "N_LENSES",
@@ -38,7 +42,10 @@ __all__ = [
     "OpticsConfig",
     "SystemConfig",
     "available_presets",
+    "check_int",
+    "check_number",
     "load_system",
+    "system_from_scale",
 ]
 
 
@@ -50,18 +57,37 @@ def _fail(name: str, message: str) -> None:
     raise ConfigError(f"{name}: {message}")
 
 
-def _check_positive(name: str, value: float, allow_zero: bool = False) -> None:
-    if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
+def check_number(name: str, value: Any, low: float | None = None, strict: bool = False) -> float:
+    """``value`` as a float if it is a finite real number (not a bool) of at least ``low``
+    (above it with ``strict``); else :class:`ConfigError` naming the field ``name``.
+
+    The configuration checks of the whole package (systems, networks, departures, training)
+    use this and :func:`check_int`, so every bad value reads ``name: must be ..., got ...``.
+
+    Examples
+    --------
+    >>> check_number("noise.photons", 0.0, low=0, strict=True)
+    Traceback (most recent call last):
+    ...
+    svcode_core.config.ConfigError: noise.photons: must be > 0, got 0.0
+    """
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
         _fail(name, f"must be a finite number, got {value!r}")
-    if value < 0 or (value == 0 and not allow_zero):
-        _fail(name, f"must be {'>= 0' if allow_zero else '> 0'}, got {value!r}")
+    if low is not None and (value < low or (strict and value == low)):
+        _fail(name, f"must be {'>' if strict else '>='} {low:g}, got {value!r}")
+    return float(value)
 
 
-def _check_int(name: str, value: Any, minimum: int = 1) -> None:
-    if not isinstance(value, int) or isinstance(value, bool):
+def check_int(name: str, value: Any, minimum: int = 1, maximum: int | None = None) -> int:
+    """``value`` if it is an integer (not a bool) in ``minimum..maximum``; else
+    :class:`ConfigError` naming the field ``name`` (see :func:`check_number`)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
         _fail(name, f"must be an integer, got {value!r}")
+    if maximum is not None and not minimum <= value <= maximum:
+        _fail(name, f"must be in {minimum}..{maximum}, got {value}")
     if value < minimum:
         _fail(name, f"must be >= {minimum}, got {value}")
+    return int(value)
 
 
 def _check_pair(name: str, value: Any, integer: bool) -> None:
@@ -122,23 +148,23 @@ class OpticsConfig:
 
     def validate(self, prefix: str = "optics") -> None:
         """Raise :class:`ConfigError` naming the first invalid field."""
-        _check_int(f"{prefix}.psf_grid", self.psf_grid, minimum=2)
-        _check_int(f"{prefix}.kernel_size", self.kernel_size, minimum=3)
+        check_int(f"{prefix}.psf_grid", self.psf_grid, minimum=2)
+        check_int(f"{prefix}.kernel_size", self.kernel_size, minimum=3)
         if self.kernel_size % 2 == 0:
             _fail(f"{prefix}.kernel_size", f"must be odd, got {self.kernel_size}")
-        _check_positive(f"{prefix}.airy_radius", self.airy_radius)
-        _check_int(f"{prefix}.pupil_samples", self.pupil_samples, minimum=8)
-        _check_positive(f"{prefix}.field_radius", self.field_radius)
+        check_number(f"{prefix}.airy_radius", self.airy_radius, low=0, strict=True)
+        check_int(f"{prefix}.pupil_samples", self.pupil_samples, minimum=8)
+        check_number(f"{prefix}.field_radius", self.field_radius, low=0, strict=True)
         for name in ("spherical", "coma", "astigmatism", "field_curvature", "distortion"):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or not math.isfinite(value):
                 _fail(f"{prefix}.{name}", f"must be a finite number, got {value!r}")
-        _check_positive(f"{prefix}.vignetting_angle", self.vignetting_angle, allow_zero=True)
+        check_number(f"{prefix}.vignetting_angle", self.vignetting_angle, low=0)
         if self.vignetting_angle >= 90:
             _fail(
                 f"{prefix}.vignetting_angle", f"must be < 90 degrees, got {self.vignetting_angle}"
             )
-        _check_positive(f"{prefix}.pupil_clip", self.pupil_clip, allow_zero=True)
+        check_number(f"{prefix}.pupil_clip", self.pupil_clip, low=0)
 
 
 @dataclass(frozen=True)
@@ -171,11 +197,11 @@ class NoiseConfig:
 
     def validate(self, prefix: str = "noise") -> None:
         """Raise :class:`ConfigError` naming the first invalid field."""
-        _check_positive(f"{prefix}.poisson_gain", self.poisson_gain, allow_zero=True)
-        _check_positive(f"{prefix}.gaussian_variance", self.gaussian_variance, allow_zero=True)
+        check_number(f"{prefix}.poisson_gain", self.poisson_gain, low=0)
+        check_number(f"{prefix}.gaussian_variance", self.gaussian_variance, low=0)
         if self.photons is not None:
-            _check_positive(f"{prefix}.photons", self.photons)
-        _check_positive(f"{prefix}.saturation", self.saturation)
+            check_number(f"{prefix}.photons", self.photons, low=0, strict=True)
+        check_number(f"{prefix}.saturation", self.saturation, low=0, strict=True)
         if not isinstance(self.dark_offset, (int, float)) or not math.isfinite(self.dark_offset):
             _fail(f"{prefix}.dark_offset", f"must be a finite number, got {self.dark_offset!r}")
 
@@ -233,7 +259,7 @@ class SystemConfig(JsonFile):
     optics : OpticsConfig
     noise : NoiseConfig
     psf_model : str or None
-        A measured PSF stack (TIFF of :mod:`svcode_core.psf_io`, its positions JSON beside
+        A measured PSF stack (TIFF of :mod:`svcode_core.physics.psf_io`, its positions JSON beside
         it) that replaces the pupil model of ``optics``; ``None``: the pupil model. In a
         JSON file the path is relative to the file; :meth:`load` makes it absolute and
         :meth:`save` writes it relative to the new file.
@@ -283,11 +309,11 @@ class SystemConfig(JsonFile):
             _fail("name", f"must be a non-empty string, got {self.name!r}")
         _check_pair("sensor_shape", self.sensor_shape, integer=True)
         for value in self.sensor_shape:
-            _check_int("sensor_shape", value, minimum=1)
+            check_int("sensor_shape", value, minimum=1)
         _check_pair("padding", self.padding, integer=True)
         for value in self.padding:
-            _check_int("padding", value, minimum=0)
-        _check_int("sub_view_size", self.sub_view_size, minimum=8)
+            check_int("padding", value, minimum=0)
+        check_int("sub_view_size", self.sub_view_size, minimum=8)
         for name, points, integer in (
             ("chief_rays", self.chief_rays, True),
             ("lens_axes", self.lens_axes, False),
@@ -304,12 +330,12 @@ class SystemConfig(JsonFile):
                     f"({r}, {c}) lies outside the padded sensor frame of {rows}×{cols}",
                 )
         if self.rank is not None:
-            _check_int("rank", self.rank, minimum=1)
-        _check_positive("rank_tolerance", self.rank_tolerance)
+            check_int("rank", self.rank, minimum=1)
+        check_number("rank_tolerance", self.rank_tolerance, low=0, strict=True)
         if self.rank_tolerance >= 1:
             _fail("rank_tolerance", f"must be < 1, got {self.rank_tolerance}")
-        _check_int("patch_size", self.patch_size, minimum=8)
-        _check_int("patch_stride", self.patch_stride, minimum=1)
+        check_int("patch_size", self.patch_size, minimum=8)
+        check_int("patch_stride", self.patch_stride, minimum=1)
         if self.patch_size > self.sub_view_size:
             _fail(
                 "patch_size",
@@ -396,6 +422,21 @@ class SystemConfig(JsonFile):
 
     # ----------------------------------------------------------------- presets
     @classmethod
+    def tiny(cls) -> SystemConfig:
+        """A small system for examples and tests, not an instrument: a 60 × 80 sensor,
+        48-pixel sub-views, 9-pixel kernels on a 3 × 3 PSF grid (fast to simulate).
+
+        Examples
+        --------
+        >>> tiny = SystemConfig.tiny()
+        >>> tiny.sensor_shape, tiny.sub_view_size, tiny.padded_shape
+        ((60, 80), 48, (84, 84))
+        """
+        optics = OpticsConfig(psf_grid=3, kernel_size=9, airy_radius=1.0, pupil_samples=32,
+                              distortion=0.5)  # fmt: skip
+        return system_from_scale("tiny", (60, 80), 48, 18, 16, optics, 1e-2).validate()
+
+    @classmethod
     def preset(cls, name: str) -> SystemConfig:
         """A named preset: ``"cm2-v2"`` (paper scale) or ``"cm2-mini"`` (CPU scale).
 
@@ -453,7 +494,7 @@ def _build(klass: type, data: Any, prefix: str) -> Any:
         raise ConfigError(f"{prefix}: {err}") from None
 
 
-def _system_from_scale(
+def system_from_scale(
     name: str,
     sensor_shape: tuple[int, int],
     sub_view_size: int,
@@ -462,9 +503,17 @@ def _system_from_scale(
     optics: OpticsConfig,
     rank_tolerance: float,
 ) -> SystemConfig:
-    """A system whose ideal lens lattice is centred in the padded frame.
+    """A system whose ideal lens lattice is centred in the padded frame (how the presets
+    are made; also for small test systems).
 
     The padded frame is ``S + 2·pitch`` square, so the nine sub-views tile it exactly.
+
+    Examples
+    --------
+    >>> optics = OpticsConfig(psf_grid=3, kernel_size=9, airy_radius=1.0, pupil_samples=32)
+    >>> tiny = system_from_scale("tiny", (60, 80), 48, 18, 16, optics, 1e-2).validate()
+    >>> tiny.padded_shape, tiny.chief_rays[4]
+    ((84, 84), (42, 42))
     """
     side = sub_view_size + 2 * pitch
     padding = ((side - sensor_shape[0]) // 2, (side - sensor_shape[1]) // 2)
@@ -490,7 +539,7 @@ def _system_from_scale(
 
 def _cm2_v2() -> SystemConfig:
     """Paper scale: padded 4200², sub-views 2400², lens pitch 900 px, patches 480/240."""
-    return _system_from_scale(
+    return system_from_scale(
         "cm2-v2",
         sensor_shape=(3000, 4000),
         sub_view_size=2400,
@@ -504,7 +553,7 @@ def _cm2_v2() -> SystemConfig:
 
 def _cm2_mini() -> SystemConfig:
     """CPU scale (0.16 × paper): padded 672², sub-views 384², pitch 144 px, patches 96/48."""
-    return _system_from_scale(
+    return system_from_scale(
         "cm2-mini",
         sensor_shape=(480, 640),
         sub_view_size=384,

@@ -21,7 +21,15 @@ import tifffile
 from .config import SystemConfig
 from .outputs import temporary_sibling
 
-__all__ = ["read_tiff", "system_beside", "tiff_metadata", "write_json_atomic", "write_tiff"]
+__all__ = [
+    "atomic_path",
+    "read_tiff",
+    "system_beside",
+    "tiff_metadata",
+    "write_json_atomic",
+    "write_text_atomic",
+    "write_tiff",
+]
 
 METADATA_KEY = "svcode"
 OME_METADATA_TAG = 65000
@@ -77,7 +85,7 @@ def write_tiff(
         meta.update(extra)
     json.dumps(meta)  # fail here, before writing, on non-serialisable metadata
     data = np.asarray(array, dtype=np.float32)
-    with _renamed_into(path) as partial:
+    with atomic_path(path) as partial:
         _write_tiff_data(partial, data, kind, meta, ome=is_ome_path(path))
     return path
 
@@ -99,8 +107,12 @@ def _write_tiff_data(
 
 
 @contextlib.contextmanager
-def _renamed_into(path: Path) -> Iterator[Path]:
-    """A unique temporary path to write; renamed to ``path`` on success, removed on error."""
+def atomic_path(path: Path) -> Iterator[Path]:
+    """A unique temporary path to write; renamed to ``path`` on success, removed on error.
+
+    Every file the package replaces in place (TIFFs, JSON, checkpoints) is written so:
+    a reader never sees a half-written file.
+    """
     partial = temporary_sibling(path)
     try:
         yield partial
@@ -163,6 +175,12 @@ def write_json_atomic(path: str | Path, data: Any) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     text = json.dumps(data, indent=2) + "\n"
-    with _renamed_into(path) as partial:
+    return write_text_atomic(path, text)
+
+
+def write_text_atomic(path: str | Path, text: str) -> Path:
+    """Write ``text`` (UTF-8) through a temporary file and an atomic rename."""
+    path = Path(path)
+    with atomic_path(path) as partial:
         partial.write_text(text, encoding="utf-8")
     return path

@@ -16,18 +16,16 @@ from typing import Any
 import psutil
 from magicgui.widgets import CheckBox, ComboBox, Container, FileEdit, FloatSpinBox, SpinBox
 
-from svcode_core.baselines import PRECISIONS as BASELINE_PRECISIONS
-from svcode_core.baselines import RL_ITERATIONS, WIENER_BALANCE, settings_for
 from svcode_core.config import SystemConfig
-from svcode_core.learned_baselines.reconstruct import PRECISIONS as LEARNED_PRECISIONS
 from svcode_core.methods import (
     LEARNED_METHODS,
     METHOD_TITLES,
     METHODS,
     reconstructor_defaults,
+    registry,
 )
-from svcode_core.reconstruct import PRECISIONS as SVCODE_PRECISIONS
-from svcode_core.tiling import TileGrid
+from svcode_core.methods.baselines import RL_ITERATIONS, WIENER_BALANCE, settings_for
+from svcode_core.methods.tiling import TileGrid
 
 from ._choosers import ModelChooser
 
@@ -44,17 +42,21 @@ LONG_RUN_SECONDS = 15 * 60
 #: runs estimated to need more than this share of the free memory ask first
 MEMORY_SHARE = 0.8
 
-_OPTIONS = {  # the option widgets each method shows, in order
-    "svcode": ("model", "precision", "tile", "batch", "skip"),
-    "admm": ("precision", "rank", "iterations", "tv_weight"),
-    "wiener": ("precision", "rank", "balance", "boundary"),
-    "rl": ("precision", "rank", "iterations"),
-    "multiwiener": ("weights", "precision"),
-    "fouriernet": ("weights", "precision"),
-}
-_PRECISIONS = {"svcode": SVCODE_PRECISIONS, "admm": BASELINE_PRECISIONS,
-               "wiener": BASELINE_PRECISIONS, "rl": BASELINE_PRECISIONS,
-               **dict.fromkeys(LEARNED_METHODS, LEARNED_PRECISIONS)}
+#: the model-based methods' options that have a widget here
+_BASELINE_WIDGETS = ("rank", "iterations", "tv_weight", "balance", "boundary")
+
+
+def _option_widgets(name: str) -> tuple[str, ...]:
+    """The option widgets method ``name`` shows, in order."""
+    if name in registry.MODEL_BASED_METHODS:
+        return ("precision", *(o for o in registry.method(name).options if o in _BASELINE_WIDGETS))
+    if name in LEARNED_METHODS:
+        return ("weights", "precision")
+    return ("model", "precision", "tile", "batch", "skip")
+
+
+_OPTIONS = {name: _option_widgets(name) for name in METHODS}
+_PRECISIONS = {name: registry.method(name).precisions for name in METHODS}
 
 
 @dataclass
@@ -101,7 +103,7 @@ class MethodPanel(Container):
         self.model = ModelChooser()
         self.weights = FileEdit(label="model file", mode="r", filter="*.safetensors",
                                 tooltip="a model trained with svcode train --method ...")
-        self.precision = ComboBox(label="precision", choices=list(SVCODE_PRECISIONS))
+        self.precision = ComboBox(label="precision", choices=list(_PRECISIONS["svcode"]))
         self.tile = SpinBox(label="tile size", min=0, max=8192,
                             value=defaults.get("tile_size") or 0,
                             tooltip="tile side P in pixels; 0: planned by the core "
@@ -164,14 +166,12 @@ class MethodPanel(Container):
             values.update(tile_size=self.tile.value or None, skip_empty=self.skip.value)
             if self.batch.value:  # else the core's default
                 values["batch_size"] = self.batch.value
-        elif method in ("admm", "wiener", "rl"):
+        elif method in registry.MODEL_BASED_METHODS:
             values["rank"] = self.rank.value or None
-            if method in ("admm", "rl"):
-                values["iterations"] = self.iterations.value
-            if method == "admm":
-                values["tv_weight"] = self.tv_weight.value
-            if method == "wiener":
-                values.update(balance=self.balance.value, boundary=self.boundary.value)
+            shown = {"iterations": self.iterations, "tv_weight": self.tv_weight,
+                     "balance": self.balance, "boundary": self.boundary}  # fmt: skip
+            values.update({option: shown[option].value
+                           for option in registry.method(method).options if option in shown})
         return values
 
     def weights_path(self, system_name: str | None = None) -> Path | None:
@@ -209,7 +209,7 @@ class MethodPanel(Container):
             detail = f"{tiles:,} tiles" if frames == 1 else (
                 f"{tiles:,} tiles: {per_frame:,} a frame × {frames} frames")
             return Cost(seconds, memory, detail)
-        if method in ("admm", "rl"):
+        if "iterations" in registry.method(method).options:
             iterations = self.iterations.value * frames
             seconds = iterations * SECONDS_PER_ITERATION * (size / 384) ** 2 / speed
             return Cost(seconds, memory, f"{iterations:,} iterations")

@@ -25,7 +25,8 @@ from napari.utils.notifications import show_info
 from qtpy.QtCore import QObject, Qt, Signal
 from qtpy.QtGui import QFontDatabase
 
-from svcode_core.calibration import (
+from svcode_core.config import ConfigError, SystemConfig
+from svcode_core.physics.calibration import (
     Calibration,
     CalibrationError,
     calibrate,
@@ -33,7 +34,6 @@ from svcode_core.calibration import (
     report_text,
     save_calibration,
 )
-from svcode_core.config import ConfigError, SystemConfig
 
 from .._errors import notify_warning
 from .._layers import (
@@ -76,7 +76,7 @@ class _Failed:
 
 
 def _calibrate_or_failed(*args: Any, **kwargs: Any) -> Calibration | _Failed:
-    """:func:`~svcode_core.calibration.calibrate`, returning the exception it raises.
+    """:func:`~svcode_core.physics.calibration.calibrate`, returning the exception it raises.
 
     The worker then never errs: napari 0.9's task-status handler of an erring worker
     raises a ``TypeError`` of its own (a second notice, with a traceback). The exception
@@ -100,15 +100,15 @@ class CalibrationWidget(Container):
     to a ``system.json``.
 
     *Calibrate from a scan*: a scan (a layer or a TIFF file of ``N × H × W`` raw frames),
-    its positions CSV (:func:`~svcode_core.calibration.read_positions`), an optional dark
+    its positions CSV (:func:`~svcode_core.physics.calibration.read_positions`), an optional dark
     frame or stack and the low-rank tolerance. *Calibrate* runs
-    :func:`~svcode_core.calibration.calibrate` in a worker thread with the chosen system
+    :func:`~svcode_core.physics.calibration.calibrate` in a worker thread with the chosen system
     as the nominal one (progress below the button; *Cancel* stops at the next frame or
     lens). The calibrated system is applied to the raw layer (the scan itself when no
     raw frame of that sensor is open; a scan read from a file is added as a layer), its
     chief rays are drawn, a ``"spots"`` layer shows the measured spot centroids and those
     the fit predicts for one frame, and the report is shown. *Save calibration* writes
-    the folder of :func:`~svcode_core.calibration.save_calibration` (``system.json`` with
+    the folder of :func:`~svcode_core.physics.calibration.save_calibration` (``system.json`` with
     its PSF stack) and gives the raw layer that saved system.
     """
 

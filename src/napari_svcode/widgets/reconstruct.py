@@ -28,6 +28,7 @@ from napari.qt.threading import GeneratorWorker, thread_worker
 from napari.utils.notifications import show_info
 
 from svcode_core.config import SystemConfig, available_presets
+from svcode_core.evaluation.metrics import image_quality
 from svcode_core.methods import (
     LEARNED_METHODS,
     METHOD_TITLES,
@@ -35,8 +36,7 @@ from svcode_core.methods import (
     cli_arguments,
     iter_method,
 )
-from svcode_core.metrics import image_quality
-from svcode_core.reconstruct import FrameProgress, ReconstructionResult, check_frame_shape
+from svcode_core.methods.base import FrameProgress, ReconstructionResult, check_frame_shape
 
 from .._errors import LOG, notify_error, notify_warning
 from .._layers import (
@@ -98,7 +98,7 @@ def run_jobs(
     """Run every job over the ``(T, H, W)`` stack in :func:`frame_order`.
 
     Yields :class:`Started` at once for each job, the core's
-    :class:`~svcode_core.reconstruct.FrameProgress` while a frame runs and
+    :class:`~svcode_core.methods.base.FrameProgress` while a frame runs and
     :class:`FrameDone` after it. Closing the generator stops it at the next yield.
     """
     for number, job in enumerate(jobs):

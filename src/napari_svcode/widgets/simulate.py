@@ -10,10 +10,10 @@ from magicgui.widgets import CheckBox, Container, PushButton, SpinBox
 from napari.qt.threading import FunctionWorker, thread_worker
 from napari.utils.notifications import show_warning
 
-from svcode_core.cm2 import simulation_cost
 from svcode_core.config import ConfigError, SystemConfig
 from svcode_core.phantoms import from_image
-from svcode_core.simulate import Simulation
+from svcode_core.physics.cm2 import simulation_cost
+from svcode_core.physics.simulate import Simulation
 
 from .._layers import current_index, layer_metadata, notify_error
 from .._resources import simulator
@@ -32,7 +32,7 @@ class SimulateWidget(Container):
     ``S × S`` object grid and normalised (:func:`svcode_core.phantoms.from_image`), then
     imaged with the system's SV forward model and sensor noise in a worker thread. The
     raw frame is added as ``"<layer> (simulated raw)"`` with the system in its metadata.
-    A simulation estimated (:func:`svcode_core.cm2.simulation_cost`) to need more than
+    A simulation estimated (:func:`svcode_core.physics.cm2.simulation_cost`) to need more than
     1 GiB or 10 s is announced with its estimate first; one needing more memory than the
     machine has available is refused.
     """

@@ -78,7 +78,7 @@ def _check_device(args: argparse.Namespace) -> None:
     """Refuse an unavailable ``--device`` before any work (every command that has one)."""
     device = getattr(args, "device", None)
     if isinstance(device, str):
-        from ..reconstruct import resolve_device
+        from ..methods.base import resolve_device
 
         resolve_device(device)
 

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..calibration import calibrate, read_positions, save_calibration
 from ..io import read_tiff
+from ..physics.calibration import calibrate, read_positions, save_calibration
 from . import add_system_arguments, chosen_system
 
 

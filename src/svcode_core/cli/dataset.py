@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..departures import NAMED_SETS, load_departures
+from ..physics.departures import NAMED_SETS, load_departures
 from ..training import DataRecipe, generate_dataset
 from . import add_system_arguments, chosen_system
 

@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 
 from ..config import available_presets, load_system
-from ..figures import overview_figure
+from ..evaluation.figures import overview_figure
+from ..evaluation.metrics import image_quality
 from ..io import write_tiff
-from ..metrics import image_quality
+from ..methods.svcode import Reconstructor
 from ..phantoms import KINDS, make_object
-from ..reconstruct import Reconstructor
-from ..simulate import Simulator
+from ..physics.simulate import Simulator
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:

@@ -5,19 +5,27 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+from typing import Any
 
-from ..baselines import METHODS as BASELINES
-from ..baselines import BaselineSpec, add_method_arguments, baseline_options
-from ..config import load_system
-from ..frames import finite_frame
-from ..learned_baselines import ARCHITECTURES as LEARNED
-from ..learned_baselines import LearnedSpec
-from ..parallel import ReconstructorSpec
+from ..config import SystemConfig, load_system
+from ..methods.baselines import RL_ITERATIONS, WIENER_BALANCE, settings_for
+from ..methods.build import MethodSpec
+from ..methods.frames import finite_frame
+from ..methods.registry import (
+    LEARNED_METHODS,
+    METHODS,
+    MODEL_BASED_METHODS,
+    OPTION_FLAGS,
+    method,
+)
 from ..pretrained import require_bundled_weights
-from ..reconstruct import PRECISIONS
-from ..stream import FrameReader, reconstruct_file
+from ..run.stream import FrameReader, reconstruct_file
 
-METHODS = ("svcode", *BASELINES, *LEARNED)
+#: the model-based methods' options, by their ``argparse`` destination
+_BASELINE_OPTIONS = {
+    OPTION_FLAGS[option].removeprefix("--").replace("-", "_"): option
+    for name in MODEL_BASED_METHODS for option in method(name).options
+}  # fmt: skip
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -38,9 +46,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--method",
         default="svcode",
         choices=METHODS,
-        help="svcode (the network), admm (LSV-ADMM with TV), wiener or rl (shift-invariant "
-        "Wiener / Richardson-Lucy per view, fused), multiwiener or fouriernet (the learned "
-        "baselines MultiWienerNet and SV-FourierNet; need --weights); default: svcode",
+        help="; ".join(f"{name}: {method(name).title}" for name in METHODS)
+        + " (the learned ones need --weights); default: svcode",
     )
     parser.add_argument(
         "--system",
@@ -72,7 +79,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--precision",
         default="fp32",
-        choices=sorted({*PRECISIONS, "fp64"}),
+        choices=sorted({p for name in METHODS for p in method(name).precisions}),
         help="svcode: fp32, bf16, fp16; model-based baselines: fp32, fp64; learned "
         "baselines: fp32, bf16 (default: fp32)",
     )
@@ -115,7 +122,7 @@ def _system(args: argparse.Namespace):
 
 def _register(args: argparse.Namespace, system) -> tuple[object, dict]:
     """The system moved by self-registration of the input, written beside ``--out``."""
-    from ..baselines.self_registration import (
+    from ..methods.baselines.self_registration import (
         REGISTRATION_FRAMES,
         RegistrationRejected,
         register_recording,
@@ -136,45 +143,100 @@ def _register(args: argparse.Namespace, system) -> tuple[object, dict]:
     return moved, {"registration": {**registration.to_dict(), "system": str(folder)}}
 
 
+def add_method_arguments(parser: argparse.ArgumentParser) -> None:
+    """Register the baselines' options on ``parser`` (all default to ``None``: preset value)."""
+    mini = settings_for(SystemConfig.preset("cm2-mini"))
+    group = parser.add_argument_group("model-based baselines (--method admm, wiener, rl)")
+    group.add_argument(
+        "--rank", type=int, metavar="K", help="low-rank order K of the forward model (all)"
+    )
+    group.add_argument(
+        "--iterations",
+        type=int,
+        help=f"admm: at most this many (default {mini.iterations}); rl: (default {RL_ITERATIONS})",
+    )
+    group.add_argument(
+        "--tv-weight", type=float, help=f"admm: TV weight lambda (default {mini.tv_weight:g})"
+    )
+    group.add_argument("--rho", type=float, help=f"admm: starting penalty (default {mini.rho:g})")
+    group.add_argument(
+        "--tolerance",
+        type=float,
+        help=f"admm: relative residual to stop at (default {mini.tolerance:g})",
+    )
+    group.add_argument(
+        "--cg-iterations",
+        type=int,
+        help=f"admm: CG steps per x-update (default {mini.cg_iterations})",
+    )
+    group.add_argument(
+        "--wiener-balance",
+        type=float,
+        help=f"wiener: Laplacian regularisation weight (default {WIENER_BALANCE:g})",
+    )
+    group.add_argument(
+        "--wiener-boundary",
+        choices=("reflect", "periodic"),
+        help="wiener: view boundary handling (default reflect)",
+    )
+
+
+def baseline_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The options of ``args.method`` given on the command line, as keyword arguments.
+
+    Raises
+    ------
+    ValueError
+        If an option of another method was given.
+    """
+    options = {}
+    for dest, name in _BASELINE_OPTIONS.items():
+        value = getattr(args, dest, None)
+        if value is None:
+            continue
+        if args.method not in MODEL_BASED_METHODS or name not in method(args.method).options:
+            raise ValueError(f"{OPTION_FLAGS[name]} does not apply to --method {args.method}")
+        options[name] = value
+    return options
+
+
 def _refuse_baseline_options(args: argparse.Namespace) -> None:
-    unused = baseline_options(argparse.Namespace(**{**vars(args), "method": "admm"}))
-    if unused:
-        raise ValueError(f"--{next(iter(unused)).replace('_', '-')} applies to the "
+    given = [dest for dest in _BASELINE_OPTIONS if getattr(args, dest, None) is not None]
+    if given:
+        raise ValueError(f"{OPTION_FLAGS[_BASELINE_OPTIONS[given[0]]]} applies to the "
                          f"model-based baselines, not to --method {args.method}")  # fmt: skip
     if args.weights is not None and not args.weights.is_file():
         raise FileNotFoundError(f"weights not found: {args.weights}")
 
 
-def _learned_spec(args: argparse.Namespace, system) -> LearnedSpec:
-    _refuse_baseline_options(args)
-    if args.weights is None:
-        raise ValueError(f"--method {args.method} needs --weights: no learned baseline is "
-                         "bundled; train one with `svcode train --method "
-                         f"{args.method}` (see the README)")  # fmt: skip
-    if args.precision not in ("fp32", "bf16"):
-        raise ValueError(f"--method {args.method} takes --precision fp32 or bf16")
-    if args.tile is not None or args.stride is not None:
-        raise ValueError(f"--tile and --stride do not apply to --method {args.method}: "
-                         "it reconstructs the whole frame at once")  # fmt: skip
-    options = {"device": args.device, "precision": args.precision}
-    return LearnedSpec(args.method, str(args.weights), system, options)
+def _check_precision(args: argparse.Namespace) -> None:
+    accepted = method(args.method).precisions
+    if args.precision not in accepted:
+        raise ValueError(f"--precision {args.precision} does not apply to --method "
+                         f"{args.method}; it takes {', '.join(accepted)}")  # fmt: skip
 
 
-def _spec(args: argparse.Namespace, system) -> ReconstructorSpec | BaselineSpec | LearnedSpec:
+def _spec(args: argparse.Namespace, system: SystemConfig) -> MethodSpec:
     """The picklable reconstructor recipe of ``args.method``."""
-    if args.method in LEARNED:
-        return _learned_spec(args, system)
-    if args.method != "svcode":
+    if args.method in MODEL_BASED_METHODS:
         if args.tile is not None or args.stride is not None:
             raise ValueError(f"--tile and --stride apply to --method svcode, not to "
                              f"--method {args.method} (it does not tile)")  # fmt: skip
-        return BaselineSpec(args.method, system, {
-            "device": args.device, "precision": args.precision, **baseline_options(args)
-        })
-    if args.precision not in PRECISIONS:
-        raise ValueError(f"--precision {args.precision} applies to the baselines only; "
-                         f"svcode takes {', '.join(sorted(PRECISIONS))}")
+        _check_precision(args)
+        options = {"device": args.device, "precision": args.precision, **baseline_options(args)}
+        return MethodSpec(args.method, system, options=options)
     _refuse_baseline_options(args)
+    _check_precision(args)
+    if args.method in LEARNED_METHODS:
+        if args.weights is None:
+            raise ValueError(f"--method {args.method} needs --weights: no learned baseline is "
+                             "bundled; train one with `svcode train --method "
+                             f"{args.method}` (see the README)")  # fmt: skip
+        if args.tile is not None or args.stride is not None:
+            raise ValueError(f"--tile and --stride do not apply to --method {args.method}: "
+                             "it reconstructs the whole frame at once")  # fmt: skip
+        options = {"device": args.device, "precision": args.precision}
+        return MethodSpec(args.method, system, str(args.weights), options)
     weights = args.weights if args.weights is not None else require_bundled_weights(system)
     options = {
         "device": args.device,
@@ -185,7 +247,7 @@ def _spec(args: argparse.Namespace, system) -> ReconstructorSpec | BaselineSpec 
         "skip_empty": not args.no_skip,
         "mask_cache_bytes": args.mask_cache << 20,
     }
-    return ReconstructorSpec(str(weights), system, options)
+    return MethodSpec("svcode", system, str(weights), options)
 
 
 def _read_files(args: argparse.Namespace, spec) -> dict[str, Path | None]:

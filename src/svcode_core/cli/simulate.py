@@ -6,12 +6,12 @@ import argparse
 import time
 from pathlib import Path
 
-from ..cm2 import CM2Operator
-from ..departures import NAMED_SETS, load_departures
 from ..outputs import check_outputs
 from ..phantoms import KINDS, from_image, make_object
-from ..scene_checks import check_object
-from ..simulate import Simulator, scene_files
+from ..physics.cm2 import CM2Operator
+from ..physics.departures import NAMED_SETS, load_departures
+from ..physics.scene_checks import check_object
+from ..physics.simulate import Simulator, scene_files
 from . import add_system_arguments, chosen_system
 
 

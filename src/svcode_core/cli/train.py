@@ -9,21 +9,12 @@ from pathlib import Path
 import torch
 
 from ..config import SystemConfig
-from ..learned_baselines import FourierNetConfig, MultiWienerConfig
-from ..network import ModelConfig, read_model_metadata
+from ..methods.model_file import read_model_metadata
+from ..methods.registry import LEARNED_METHODS, TRAINABLE_METHODS, method
 from ..pretrained import require_bundled_weights
 from ..training import TrainConfig, Trainer, TrainingData, init_distributed, shutdown_distributed
+from ..training.configs import ABLATIONS, AnyModelConfig, config_class, model_config_from
 from . import add_system_arguments, chosen_system
-
-#: configuration class of each learned baseline (``--method``)
-BASELINE_CONFIGS = {"multiwiener": MultiWienerConfig, "fouriernet": FourierNetConfig}
-METHODS = ("svcode", *BASELINE_CONFIGS)
-
-ABLATIONS = {
-    "none": {},
-    "no-coordgate": {"coord_gate": False},
-    "no-pe": {"positional_encoding": False},
-}
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -45,9 +36,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                          "dataset's (default: the dataset's)")  # fmt: skip
     parser.add_argument("--data", type=Path, required=True, help="dataset folder")
     parser.add_argument("--out", type=Path, required=True, help="run folder")
-    parser.add_argument("--method", default="svcode", choices=METHODS,
+    parser.add_argument("--method", default="svcode", choices=TRAINABLE_METHODS,
                         help="svcode (patch-wise), or a learned baseline trained on whole "
-                        "frames: multiwiener (MultiWienerNet), fouriernet (SV-FourierNet)")
+                        "frames: " + ", ".join(f"{name} ({method(name).label})"
+                                               for name in LEARNED_METHODS))  # fmt: skip
     parser.add_argument("--model-config", metavar="{mini,reference,FILE}",
                         help="network sizes: a preset name or a JSON file of the method's "
                         "configuration (default: mini; the baselines have mini only)")
@@ -85,30 +77,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
-def model_config_from(
-    spec: str, ablation: str = "none", method: str = "svcode"
-) -> ModelConfig | MultiWienerConfig | FourierNetConfig:
-    """The configuration of ``method`` from ``"mini"``, ``"reference"`` (SV-CoDe only) or a
-    JSON file, with an ablation (SV-CoDe only)."""
-    if method in BASELINE_CONFIGS:
-        if ablation != "none":
-            raise ValueError(f"--ablation applies to SV-CoDe, not to --method {method}")
-        config_class = BASELINE_CONFIGS[method]
-        if spec == "mini":
-            return config_class().validate()
-        path = _config_file(spec, "neither mini nor")
-        return config_class.from_json(path.read_text(encoding="utf-8"))
-    if spec in ("mini", "reference"):
-        config = getattr(ModelConfig, spec)()
-    else:
-        path = _config_file(spec, "neither mini, reference nor")
-        config = ModelConfig.from_json(path.read_text(encoding="utf-8"))
-    return config.replace(**ABLATIONS[ablation])
-
-
-def initial_weights(
-    args: argparse.Namespace, system: SystemConfig
-) -> tuple[Path, ModelConfig | MultiWienerConfig | FourierNetConfig]:
+def initial_weights(args: argparse.Namespace, system: SystemConfig) -> tuple[Path, AnyModelConfig]:
     """The model file of ``--init`` (``pretrained``: the bundled model of ``system``) and
     its network configuration, checked against ``--method``; ``--model-config`` and
     ``--ablation`` must be left out."""
@@ -117,18 +86,11 @@ def initial_weights(
                          "leave out --model-config and --ablation")  # fmt: skip
     path = require_bundled_weights(system) if args.init == "pretrained" else Path(args.init)
     config = read_model_metadata(path)["model_config"]
-    expected = BASELINE_CONFIGS.get(args.method, ModelConfig)
+    expected = config_class(args.method)
     if not isinstance(config, expected):
         raise ValueError(f"--init {path} holds a {type(config).__name__} model, not one for "
                          f"--method {args.method}")  # fmt: skip
     return path, config
-
-
-def _config_file(spec: str, presets: str) -> Path:
-    path = Path(spec)
-    if not path.is_file():
-        raise FileNotFoundError(f"--model-config {spec!r}: {presets} an existing JSON file")
-    return path
 
 
 def run(args: argparse.Namespace) -> int:

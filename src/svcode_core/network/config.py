@@ -7,9 +7,9 @@ import json
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
-from ..config import ConfigError
+from ..config import ConfigError, check_int
 
-__all__ = ["PE_SCHEMES", "BlockConfig", "ModelConfig", "check_int"]
+__all__ = ["PE_SCHEMES", "BlockConfig", "ModelConfig"]
 
 PE_SCHEMES = ("paper", "code")
 """Frequency schemes of the positional encoding: ``"paper"`` uses ``2^k π`` (k = 0..L-1),
@@ -66,15 +66,6 @@ class BlockConfig:
         except json.JSONDecodeError as err:
             raise ConfigError(f"model: not valid JSON ({err})") from None
         return cls.from_dict(data)
-
-
-def check_int(name: str, value: Any, minimum: int) -> None:
-    """Raise :class:`~svcode_core.config.ConfigError` unless ``value`` is an integer (not a
-    bool) of at least ``minimum``."""
-    if not isinstance(value, int) or isinstance(value, bool):
-        raise ConfigError(f"{name}: must be an integer, got {value!r}")
-    if value < minimum:
-        raise ConfigError(f"{name}: must be >= {minimum}, got {value}")
 
 
 @dataclass(frozen=True)
@@ -165,17 +156,6 @@ class ModelConfig(BlockConfig):
             output="linear",
             mask_spacing=8,
         ).validate()
-
-    # ------------------------------------------------------------------ derived
-    @property
-    def demix_levels(self) -> int:
-        """Down-sampling steps of the Demixing-Net U-Net."""
-        return len(self.demix_enc_blocks)
-
-    @property
-    def recon_levels(self) -> int:
-        """Down-sampling steps of the Recon-Net U-Net."""
-        return len(self.recon_enc_blocks)
 
     def replace(self, **changes: Any) -> ModelConfig:
         """A validated copy with some fields changed."""

@@ -7,7 +7,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from ..geometry import normalized_coordinates
+from ..physics.geometry import normalized_coordinates
 from .config import PE_SCHEMES
 
 __all__ = ["encoding_size", "frequencies", "level_coordinates", "positional_encoding"]
@@ -80,7 +80,7 @@ def level_coordinates(
     """Normalised coordinates of one axis at every U-Net level, in float64.
 
     Level 0 holds pixels ``origin .. origin + length - 1`` of the ``size`` grid (see
-    :func:`~svcode_core.geometry.normalized_coordinates`); level ``k`` is the 2-average
+    :func:`~svcode_core.physics.geometry.normalized_coordinates`); level ``k`` is the 2-average
     pooling of level ``k - 1``: the coordinates of the down-sampled grid.
 
     Parameters

@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..config import N_LENSES
+from ..config import DEFAULT_MEMORY_BUDGET, N_LENSES
 from .blocks import CoDeBlock, ViewFusion
 from .config import ModelConfig
 from .coordgate import CoordGate, CoordGrid, MaskCache, MaskField
@@ -29,7 +29,7 @@ from .lattice import interpolate, lattice_axis
 
 __all__ = ["DemixNet", "MaskLayer", "ReconNet", "SVCoDe", "UNet"]
 
-DEFAULT_CACHE_BYTES = 1 << 30
+DEFAULT_CACHE_BYTES = DEFAULT_MEMORY_BUDGET
 
 
 class MaskLayer(NamedTuple):
@@ -477,46 +477,40 @@ class _CacheSwitch:
         self._model._mask_cache = self._previous
 
 
-class DemixNet(_ViewNet, _MaskedModel):
+class _Stage(_ViewNet, _MaskedModel):
+    """One stage as a model of its own; ``stage`` names its fields of :class:`ModelConfig`
+    (``{stage}_enc_blocks``, ``{stage}_middle_blocks``, ``{stage}_dec_blocks``)."""
+
+    out_channels = 1
+
+    def __init__(self, config: ModelConfig) -> None:
+        parts = ("enc", "middle", "dec")
+        blocks = [getattr(config, f"{self.stage}_{part}_blocks") for part in parts]
+        super().__init__(config, self.out_channels, *blocks)
+        self._setup_masks(config)
+
+    def _stages(self) -> list[_ViewNet]:
+        return [self]
+
+    def forward(
+        self, views: torch.Tensor, origins: torch.Tensor | Sequence, sub_view_size: int
+    ) -> torch.Tensor:
+        """The stage's output ``(B, out_channels, H, W)``; see the module docstring."""
+        padded, grids = self._prepare(views, origins, sub_view_size, self.levels)
+        return self.run(padded, grids)[..., : views.shape[-2], : views.shape[-1]]
+
+
+class DemixNet(_Stage):
     """Demixing-Net: nine multiplexed sub-view tiles in, nine demixed tiles out."""
 
     stage = "demix"
-
-    def __init__(self, config: ModelConfig) -> None:
-        super().__init__(config, N_LENSES, config.demix_enc_blocks, config.demix_middle_blocks,
-                         config.demix_dec_blocks)
-        self._setup_masks(config)
-
-    def _stages(self) -> list[_ViewNet]:
-        return [self]
-
-    def forward(
-        self, views: torch.Tensor, origins: torch.Tensor | Sequence, sub_view_size: int
-    ) -> torch.Tensor:
-        """Demixed views ``(B, 9, H, W)`` in ``(0, 1)``; see the module docstring."""
-        padded, grids = self._prepare(views, origins, sub_view_size, self.levels)
-        return self.run(padded, grids)[..., : views.shape[-2], : views.shape[-1]]
+    out_channels = N_LENSES
 
 
-class ReconNet(_ViewNet, _MaskedModel):
+class ReconNet(_Stage):
     """Recon-Net: nine demixed tiles in, one tile of the object out."""
 
     stage = "recon"
-
-    def __init__(self, config: ModelConfig) -> None:
-        super().__init__(config, 1, config.recon_enc_blocks, config.recon_middle_blocks,
-                         config.recon_dec_blocks)
-        self._setup_masks(config)
-
-    def _stages(self) -> list[_ViewNet]:
-        return [self]
-
-    def forward(
-        self, views: torch.Tensor, origins: torch.Tensor | Sequence, sub_view_size: int
-    ) -> torch.Tensor:
-        """Reconstruction ``(B, 1, H, W)`` in ``(0, 1)``; see the module docstring."""
-        padded, grids = self._prepare(views, origins, sub_view_size, self.levels)
-        return self.run(padded, grids)[..., : views.shape[-2], : views.shape[-1]]
 
 
 class SVCoDe(_MaskedModel):

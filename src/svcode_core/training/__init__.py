@@ -3,7 +3,7 @@ loss, tasks and trainer."""
 
 from .dataset import DataRecipe, TrainingData, generate_dataset, split_frames, training_object
 from .distributed import DistInfo, init_distributed, shutdown_distributed
-from .loss import joint_loss, psnr, ssim_per_sample, stage_loss, svcode_loss
+from .loss import joint_loss, psnr_per_sample, ssim_per_sample, stage_loss, svcode_loss
 from .sampler import EpochSampler, FrameDataset, PatchDataset, check_disjoint_view_patches
 from .tasks import FrameTask, PatchTask, training_task
 from .trainer import TrainConfig, Trainer
@@ -23,7 +23,7 @@ __all__ = [
     "generate_dataset",
     "init_distributed",
     "joint_loss",
-    "psnr",
+    "psnr_per_sample",
     "shutdown_distributed",
     "split_frames",
     "ssim_per_sample",

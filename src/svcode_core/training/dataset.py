@@ -28,7 +28,6 @@ on use with :meth:`TrainingData.frame_sensor`.
 from __future__ import annotations
 
 import json
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,11 +36,12 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from ..config import N_LENSES, SystemConfig
-from ..departures import Departures
-from ..noise import SensorModel
+from ..config import N_LENSES, ConfigError, SystemConfig, check_int, check_number
+from ..io import write_json_atomic
 from ..phantoms import make_object
-from ..simulate import Simulator
+from ..physics.departures import Departures
+from ..physics.noise import SensorModel
+from ..physics.simulate import Simulator
 
 __all__ = [
     "DATA_FORMAT",
@@ -93,27 +93,21 @@ class DataRecipe:
     instrument_frames: int = 8
 
     def validate(self) -> DataRecipe:
-        """Raise ``ValueError`` naming the first bad field; return ``self``."""
-        if not isinstance(self.frames, int) or self.frames < 2:
-            raise ValueError(f"frames must be an integer >= 2 (train + validation), "
-                             f"got {self.frames!r}")
-        if not isinstance(self.seed, int) or self.seed < 0:
-            raise ValueError(f"seed must be a non-negative integer, got {self.seed!r}")
-        if not 0 < self.val_fraction < 1:
-            raise ValueError(f"val_fraction must lie in (0, 1), got {self.val_fraction!r}")
+        """Raise ``ValueError`` (:class:`~svcode_core.config.ConfigError`) naming the first
+        bad field; return ``self``."""
+        check_int("frames", self.frames, 2)  # train + validation
+        check_int("seed", self.seed, 0)
+        if not 0 < check_number("val_fraction", self.val_fraction) < 1:
+            raise ConfigError(f"val_fraction: must lie in (0, 1), got {self.val_fraction!r}")
         low, high = self.brightness
         if not 0 < low <= high <= 1:
-            raise ValueError(f"brightness must satisfy 0 < low <= high <= 1, "
-                             f"got {self.brightness!r}")
+            raise ConfigError(f"brightness: must satisfy 0 < low <= high <= 1, "
+                              f"got {self.brightness!r}")
         if self.departures is not None:
             if not isinstance(self.departures, Departures):
-                raise ValueError(f"departures must be Departures, got {self.departures!r}")
+                raise ConfigError(f"departures: must be Departures, got {self.departures!r}")
             self.departures.validate()
-        if isinstance(self.instrument_frames, bool) or not isinstance(
-            self.instrument_frames, int
-        ) or self.instrument_frames < 1:
-            raise ValueError(f"instrument_frames must be an integer >= 1, "
-                             f"got {self.instrument_frames!r}")
+        check_int("instrument_frames", self.instrument_frames, 1)
         return self
 
     def to_dict(self) -> dict[str, Any]:
@@ -234,7 +228,7 @@ class TrainingData:
         nominal ``system.noise`` for a dataset without departures). Its ``read`` acts
         pixel by pixel, so it applies to patches of the views as well as to whole frames.
         """
-        from ..instrument import sensor_model
+        from ..physics.instrument import sensor_model
 
         departures = self.frame_departures(index) or Departures()
         sensor = sensor_model(self.system.noise, departures, (1, 1))
@@ -246,12 +240,6 @@ class TrainingData:
     def __repr__(self) -> str:
         return (f"TrainingData({str(self.path)!r}, {len(self)} frames of {self.system.name}, "
                 f"{len(self.train_frames)} train / {len(self.val_frames)} val)")
-
-
-def _write_json_atomic(path: Path, data: dict[str, Any]) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
-    os.replace(tmp, path)
 
 
 def _open_arrays(path: Path, shapes: dict[str, tuple[int, ...]], create: bool) -> dict:
@@ -338,7 +326,7 @@ def generate_dataset(
             "count": 0,
             "seconds": 0.0,
         }
-        _write_json_atomic(manifest_path, manifest)
+        write_json_atomic(manifest_path, manifest)
     start, spent = manifest["count"], manifest["seconds"]
     if start < recipe.frames:
         simulator = simulator or Simulator(system)
@@ -357,7 +345,7 @@ def generate_dataset(
                 array.flush()
             manifest["count"] = index + 1
             manifest["seconds"] = round(spent + time.perf_counter() - clock, 3)
-            _write_json_atomic(manifest_path, manifest)
+            write_json_atomic(manifest_path, manifest)
     del arrays
     return TrainingData(out)
 

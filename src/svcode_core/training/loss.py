@@ -5,6 +5,13 @@ the learned baselines have the reconstruction stage alone, :func:`joint_loss`); 
 pytorch-msssim's Gaussian-window SSIM (window 11, σ 1.5, ``data_range = 1``), averaged over
 channels and batch. Everything is computed in float32, also when the network
 ran under bf16 autocast.
+
+Training SSIM and report SSIM
+    The loss needs a differentiable SSIM on batches of tensors, hence the Gaussian-window
+    one here; the reports (:func:`svcode_core.evaluation.metrics.ssim`) use scikit-image's
+    7 × 7 uniform window. The two differ by a few hundredths on the same image: validation
+    SSIMs in training logs are the Gaussian-window ones. The PSNR is the same in both
+    (:func:`~svcode_core.evaluation.metrics.psnr_from_mse`).
 """
 
 from __future__ import annotations
@@ -14,9 +21,11 @@ from collections.abc import Mapping
 import torch
 from pytorch_msssim import ssim
 
-__all__ = ["joint_loss", "psnr", "ssim_per_sample", "stage_loss", "svcode_loss"]
+from ..evaluation.metrics import psnr_from_mse
 
-#: Smallest MSE used by :func:`psnr` (caps the PSNR of a perfect patch at 100 dB).
+__all__ = ["joint_loss", "psnr_per_sample", "ssim_per_sample", "stage_loss", "svcode_loss"]
+
+#: Smallest MSE used by :func:`psnr_per_sample` (caps the PSNR of a perfect patch at 100 dB).
 MIN_MSE = 1e-10
 
 
@@ -93,12 +102,12 @@ def svcode_loss(
 
 
 @torch.no_grad()
-def psnr(prediction: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+def psnr_per_sample(prediction: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """PSNR in dB of each sample for data in ``[0, 1]``, shape ``(B,)`` (MSE floored at
     :data:`MIN_MSE`)."""
     _check(prediction, target)
     mse = ((prediction.float() - target.float()) ** 2).flatten(1).mean(1)
-    return -10.0 * torch.log10(mse.clamp(min=MIN_MSE))
+    return psnr_from_mse(mse.clamp(min=MIN_MSE))
 
 
 @torch.no_grad()

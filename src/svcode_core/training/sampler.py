@@ -2,7 +2,7 @@
 whole padded frames for the full-frame learned baselines (:class:`FrameDataset`).
 
 Every frame is cut into ``P × P`` patches at the configured stride (``P / 2`` in the
-presets, the last patch flush with the edge, :class:`~svcode_core.tiling.TileGrid`). A
+presets, the last patch flush with the edge, :class:`~svcode_core.methods.tiling.TileGrid`). A
 patch holds the nine noiseless view crops with sensor noise added on access (the frame's
 own camera, :meth:`~.dataset.TrainingData.frame_sensor`, when the dataset has departures), the nine
 demixing targets, the object crop, and the crop's origin in sub-view pixels, which the
@@ -25,8 +25,8 @@ import numpy as np
 import torch
 
 from ..config import SystemConfig
-from ..geometry import assemble_frame, crop_to_sensor, extract_sub_views, pad_sensor_frame
-from ..tiling import TileGrid
+from ..methods.tiling import TileGrid
+from ..physics.geometry import assemble_frame, crop_to_sensor, extract_sub_views, pad_sensor_frame
 from .dataset import TrainingData
 
 __all__ = [
@@ -178,9 +178,9 @@ class FrameDataset(_NoisySamples):
     """Whole padded sensor frames of some frames of a :class:`TrainingData`, with noise.
 
     For methods that filter the whole frame (the learned baselines,
-    :mod:`svcode_core.learned_baselines`). The padded frame is rebuilt from the stored
-    sub-views (:func:`~svcode_core.geometry.assemble_frame`) and the sensor model is
-    applied to the sensor window only, as :class:`~svcode_core.simulate.Simulator` does,
+    :mod:`svcode_core.methods.learned`). The padded frame is rebuilt from the stored
+    sub-views (:func:`~svcode_core.physics.geometry.assemble_frame`) and the sensor model is
+    applied to the sensor window only, as :class:`~svcode_core.physics.simulate.Simulator` does,
     so the nine views of one frame share one noise draw. Parameters as
     :class:`PatchDataset`.
 

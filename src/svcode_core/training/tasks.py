@@ -4,7 +4,7 @@
 
 * :class:`PatchTask`: SV-CoDe on aligned sub-view patches with their origins, two stages
   (``demix``, ``recon``);
-* :class:`FrameTask`: the learned baselines (:mod:`svcode_core.learned_baselines`) on whole
+* :class:`FrameTask`: the learned baselines (:mod:`svcode_core.methods.learned`) on whole
   padded frames (they filter the whole field of view), one stage (``recon``), initialised
   from the system's pupil-model operator.
 
@@ -21,10 +21,10 @@ from typing import Any
 import torch
 from torch import nn
 
-from ..cm2 import CM2Operator
 from ..config import SystemConfig
-from ..learned_baselines import FourierNetConfig, MultiWienerConfig, MultiWienerNet, SVFourierNet
+from ..methods.learned import LEARNED_MODELS, FourierNetConfig, MultiWienerConfig
 from ..network import ModelConfig, SVCoDe
+from ..physics.cm2 import CM2Operator
 from .dataset import TrainingData
 from .sampler import FrameDataset, PatchDataset
 
@@ -95,7 +95,7 @@ class FrameTask:
 
     unit = "frames"
     stages = ("recon",)
-    _MODELS = {MultiWienerConfig: MultiWienerNet, FourierNetConfig: SVFourierNet}
+    _MODELS = {cls.config_class: cls for cls in LEARNED_MODELS.values()}
 
     def __init__(self, config: MultiWienerConfig | FourierNetConfig) -> None:
         self.config = config

@@ -31,7 +31,6 @@ import dataclasses
 import io
 import json
 import math
-import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -46,11 +45,14 @@ from safetensors.torch import load_file
 from torch.nn.parallel import DistributedDataParallel
 from tqdm.auto import tqdm
 
-from ..learned_baselines import FourierNetConfig, MultiWienerConfig
-from ..network import ModelConfig, load_model, save_model
+from ..config import ConfigError, check_int, check_number
+from ..io import atomic_path, write_text_atomic
+from ..methods.learned import FourierNetConfig, MultiWienerConfig
+from ..methods.model_file import load_model, save_model
+from ..network import ModelConfig
 from .dataset import TrainingData
 from .distributed import DistInfo, all_reduce_sum, barrier
-from .loss import joint_loss, psnr, ssim_per_sample
+from .loss import joint_loss, psnr_per_sample, ssim_per_sample
 from .sampler import EpochSampler, derive_seed
 from .tasks import Stages, training_task
 
@@ -113,34 +115,21 @@ class TrainConfig:
     same_origin: int = 1
 
     def validate(self) -> TrainConfig:
-        """Raise ``ValueError`` naming the first bad field; return ``self``."""
-        for name in ("epochs", "batch_size"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        """Raise ``ValueError`` (:class:`~svcode_core.config.ConfigError`) naming the first
+        bad field; return ``self``."""
+        for name in ("epochs", "batch_size", "same_origin"):
+            check_int(name, getattr(self, name), 1)
         for name in ("patches_per_epoch", "val_patches"):
-            value = getattr(self, name)
-            if value is not None and (not isinstance(value, int) or value < 1):
-                raise ValueError(f"{name} must be a positive integer or None, got {value!r}")
+            if getattr(self, name) is not None:
+                check_int(name, getattr(self, name), 1)
         for name in ("lr", "grad_clip"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-        if not isinstance(self.warmup_steps, int) or self.warmup_steps < 0:
-            raise ValueError(f"warmup_steps must be a non-negative integer, "
-                             f"got {self.warmup_steps!r}")
-        if not 0 <= self.min_lr_ratio <= 1:
-            raise ValueError(f"min_lr_ratio must lie in [0, 1], got {self.min_lr_ratio!r}")
+            check_number(name, getattr(self, name), 0, strict=True)
+        for name in ("warmup_steps", "seed", "workers"):
+            check_int(name, getattr(self, name), 0)
+        if not 0 <= check_number("min_lr_ratio", self.min_lr_ratio) <= 1:
+            raise ConfigError(f"min_lr_ratio: must lie in [0, 1], got {self.min_lr_ratio!r}")
         for name in ("alpha", "beta"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0):
-                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-        if not isinstance(self.seed, int) or self.seed < 0:
-            raise ValueError(f"seed must be a non-negative integer, got {self.seed!r}")
-        if not isinstance(self.same_origin, int) or self.same_origin < 1:
-            raise ValueError(f"same_origin must be a positive integer, got {self.same_origin!r}")
-        if not isinstance(self.workers, int) or self.workers < 0:
-            raise ValueError(f"workers must be a non-negative integer, got {self.workers!r}")
+            check_number(name, getattr(self, name), 0)
         return self
 
     def to_dict(self) -> dict[str, Any]:
@@ -165,13 +154,8 @@ class _WarmupCosine:
 
 
 def _atomic_write(path: Path, write: Callable[[Path], Any]) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    write(tmp)
-    os.replace(tmp, path)
-
-
-def _atomic_text(path: Path, text: str) -> None:
-    _atomic_write(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))
+    with atomic_path(path) as partial:
+        write(partial)
 
 
 class Trainer:
@@ -198,9 +182,11 @@ class Trainer:
 
     Examples
     --------
-    >>> trainer = Trainer(TrainingData("data"), "run", ModelConfig.mini(),
-    ...                   TrainConfig(epochs=3))                        # doctest: +SKIP
-    >>> history = trainer.fit()                                         # doctest: +SKIP
+    Three epochs of the ``mini`` network on a dataset written by ``svcode dataset``
+    (see ``tests/test_training.py`` for a run on a tiny system)::
+
+        trainer = Trainer(TrainingData("data"), "run", ModelConfig.mini(), TrainConfig(epochs=3))
+        trainer.fit()
     """
 
     def __init__(
@@ -352,7 +338,7 @@ class Trainer:
                 n = len(items)
                 values = {"loss": float(loss) * n}
                 for stage, (prediction, target) in stages.items():
-                    values[f"{stage}_psnr"] = float(psnr(prediction, target).sum())
+                    values[f"{stage}_psnr"] = float(psnr_per_sample(prediction, target).sum())
                     values[f"{stage}_ssim"] = float(ssim_per_sample(prediction, target).sum())
                 sums += torch.tensor([values[name] for name in names] + [n], dtype=torch.float64)
         sums = all_reduce_sum(sums.to(self._reduce_device), self.dist).cpu()
@@ -448,7 +434,7 @@ class Trainer:
                                                       {"epoch": self.epoch}))
         _atomic_write(state_path, lambda tmp: torch.save(state, tmp))
         previous = self._latest()
-        _atomic_text(folder / LATEST, json.dumps(
+        write_text_atomic(folder / LATEST, json.dumps(
             {"epoch": self.epoch, "weights": weights.name, "state": state_path.name}) + "\n")
         if previous is not None and previous["epoch"] != self.epoch:
             for key in ("weights", "state"):
@@ -516,10 +502,10 @@ class Trainer:
         writer = csv.DictWriter(text, fieldnames=columns, lineterminator="\n")
         writer.writeheader()
         writer.writerows(self.history)
-        _atomic_text(self.out / "log.csv", text.getvalue())
+        write_text_atomic(self.out / "log.csv", text.getvalue())
         log = {**self._metadata(), "history": self.history, "best": self.best,
                "step_losses": self.step_losses}
-        _atomic_text(self.out / "log.json", json.dumps(log, indent=1) + "\n")
+        write_text_atomic(self.out / "log.json", json.dumps(log, indent=1) + "\n")
         _atomic_write(self.out / "loss.png", lambda tmp: self.plot(tmp))
 
     def plot(self, path: str | Path) -> None:

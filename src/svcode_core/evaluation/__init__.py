@@ -1,0 +1,3 @@
+"""Judging the methods (design.md §6): image metrics (:mod:`.metrics`), model size and
+memory (:mod:`.footprint`), extreme frames (:mod:`.stability`), the benchmark in six
+regimes (:mod:`.bench`) and figures (:mod:`.figures`)."""

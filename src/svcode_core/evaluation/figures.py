@@ -1,0 +1,137 @@
+"""Matplotlib figures of simulations and reconstructions (Agg backend, no display)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.patches import Rectangle  # noqa: E402
+
+from ..config import SystemConfig  # noqa: E402
+from ..physics.geometry import sub_view_origins  # noqa: E402
+
+__all__ = ["calibration_figure", "montage", "overview_figure"]
+
+
+def montage(views: np.ndarray) -> np.ndarray:
+    """Arrange nine ``(9, S, S)`` views as one ``(3S, 3S)`` image, lens 0 top left."""
+    views = np.asarray(views)
+    size = views.shape[-1]
+    return views.reshape(3, 3, size, size).transpose(0, 2, 1, 3).reshape(3 * size, 3 * size)
+
+
+def overview_figure(
+    path: str | Path,
+    system: SystemConfig,
+    measurement: np.ndarray,
+    panels: dict[str, np.ndarray],
+    title: str = "",
+) -> Path:
+    """Save the raw frame with its sub-view boxes beside further image panels.
+
+    Parameters
+    ----------
+    path : str or Path
+        PNG to write.
+    system : SystemConfig
+        Gives the sensor window and the sub-view boxes.
+    measurement : numpy.ndarray
+        Raw sensor frame ``(H, W)``.
+    panels : dict of str to numpy.ndarray
+        Title → 2-D image (a ``(9, S, S)`` stack is shown as a 3×3 montage).
+    title : str
+        Figure title.
+    """
+    count = 1 + len(panels)
+    fig, axes = plt.subplots(1, count, figsize=(3.6 * count, 4.0), squeeze=False)
+    axes = axes[0]
+    padded = np.zeros(system.padded_shape, dtype=np.float32)
+    padded[system.sensor_window] = measurement
+    axes[0].imshow(padded, cmap="gray")
+    rows, cols = system.sensor_window
+    axes[0].add_patch(Rectangle((cols.start - 0.5, rows.start - 0.5), cols.stop - cols.start,
+                                rows.stop - rows.start, fill=False, ec="white", ls="--", lw=0.8))
+    size = system.sub_view_size
+    colours = plt.cm.tab10(np.arange(9) % 10)
+    for lens, (r0, c0) in enumerate(sub_view_origins(system)):
+        axes[0].add_patch(Rectangle((c0 - 0.5, r0 - 0.5), size, size, fill=False,
+                                    ec=colours[lens], lw=0.8))
+        r, c = system.chief_rays[lens]
+        axes[0].plot(c, r, "+", color=colours[lens], ms=5)
+    axes[0].set_title("raw frame, sub-views")
+    for ax, (name, image) in zip(axes[1:], panels.items(), strict=True):
+        image = np.asarray(image)
+        shown = montage(image) if image.ndim == 3 else image
+        cmap = "magma" if "error" in name else "gray"
+        handle = ax.imshow(shown, cmap=cmap)
+        if "error" in name:
+            fig.colorbar(handle, ax=ax, fraction=0.046, pad=0.02)
+        ax.set_title(name)
+    for ax in axes:
+        ax.set_xticks([])
+        ax.set_yticks([])
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def calibration_figure(path: str | Path, calibration, frames: np.ndarray) -> Path:
+    """Save the fitted spots, their residuals and the PSF grid of a calibration.
+
+    Parameters
+    ----------
+    path : str or Path
+        PNG to write.
+    calibration : svcode_core.physics.calibration.Calibration
+    frames : numpy.ndarray
+        The scan ``(N, H, W)``; its maximum over frames is the background of panel 1.
+    """
+    cal = calibration
+    fig, axes = plt.subplots(1, 3, figsize=(13.0, 4.4))
+    axes[0].imshow(np.asarray(frames).max(axis=0), cmap="gray")
+    measured = cal.centroids.reshape(-1, 2)
+    predicted = cal.predicted.reshape(-1, 2)
+    axes[0].plot(measured[:, 1], measured[:, 0], "o", mfc="none", mec="cyan", ms=4,
+                 label="measured spot")
+    axes[0].plot(predicted[:, 1], predicted[:, 0], "+", color="red", ms=4, label="fitted")
+    axes[0].legend(loc="lower right", fontsize=7)
+    axes[0].set_title("scan (max over frames), spots")
+    colours = plt.cm.tab10(np.arange(9) % 10)
+    residual = cal.centroids - cal.predicted
+    for lens in range(9):
+        axes[1].plot(residual[:, lens, 1], residual[:, lens, 0], ".", color=colours[lens],
+                     label=f"lens {lens}")
+    axes[1].axhline(0, color="grey", lw=0.5)
+    axes[1].axvline(0, color="grey", lw=0.5)
+    axes[1].set_aspect("equal")
+    axes[1].invert_yaxis()
+    axes[1].set_xlabel("col residual (px)")
+    axes[1].set_ylabel("row residual (px)")
+    axes[1].legend(fontsize=6, ncol=3)
+    axes[1].set_title("centroid residuals")
+    psfs = np.asarray(cal.psfs)
+    grid = int(round(np.sqrt(psfs.shape[1])))
+    k = psfs.shape[-1]
+    tiles = psfs.reshape(3, 3, grid, grid, k, k).transpose(0, 2, 4, 1, 3, 5)
+    axes[2].imshow(np.sqrt(tiles.reshape(3 * grid * k, 3 * grid * k)), cmap="magma")
+    for line in range(1, 3):
+        axes[2].axhline(line * grid * k - 0.5, color="white", lw=0.8)
+        axes[2].axvline(line * grid * k - 0.5, color="white", lw=0.8)
+    axes[2].set_xticks([])
+    axes[2].set_yticks([])
+    axes[2].set_title(f"PSF grid, lens-major (sqrt), K = {max(cal.ranks)}")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

@@ -1,0 +1,331 @@
+"""Reconstruct raw CM² frames with a trained SV-CoDe model, tile by tile.
+
+:class:`Reconstructor` takes a raw sensor frame ``(H, W)`` (``system.sensor_shape``) or a
+stack ``(T, H, W)``, validates it, zero-pads it, cuts the nine ``S × S`` sub-views, runs
+the model over overlapping tiles (see :mod:`svcode_core.methods.tiling`) and returns the
+reconstruction, optionally the nine demixed views, the time spent in each stage and the
+tile counters.
+
+Input handling
+    NaN or Inf, a frame of the wrong size, an empty stack or a wrong number of dimensions
+    raise :class:`ValueError` naming the problem. Negative values (left by dark-frame
+    subtraction) are **clipped at 0** before the model: the training measurements are
+    non-negative sensor readings, so the model has never seen negative input.
+
+Devices and precision
+    ``device`` is ``"cpu"``, ``"cuda"`` / ``"cuda:N"`` or ``"mps"``; an unavailable one is a
+    clear error. ``precision`` ``"fp32"`` runs as is; ``"bf16"`` and ``"fp16"`` run under
+    :func:`torch.autocast`. ``"fp16"`` on the CPU is refused (PyTorch's CPU half-precision
+    kernels are slow and partly missing): use ``"bf16"`` there. Inputs and outputs stay on
+    the host; only one batch of tiles is on the device at a time.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import threading
+import time
+from collections.abc import Generator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..config import DEFAULT_MEMORY_BUDGET, SystemConfig
+from ..physics.geometry import extract_sub_views, pad_sensor_frame
+from ..physics.noise import noise_floor
+from .base import (
+    PRECISIONS,
+    BaseReconstructor,
+    FrameProgress,
+    ReconstructionResult,
+    precision_dtype,
+    resolve_device,
+)
+from .frames import finite_frame
+from .tiling import (
+    DEFAULT_SKIP_FACTOR,
+    TileGrid,
+    TileProgress,
+    iter_tiled,
+    tiles_with_signal,
+)
+
+__all__ = ["Reconstructor", "plan_tiles"]
+
+DEFAULT_MASK_CACHE_BYTES = DEFAULT_MEMORY_BUDGET
+DEFAULT_TILE_MEMORY_BYTES = DEFAULT_MEMORY_BUDGET
+
+
+def plan_tiles(
+    model: torch.nn.Module,
+    sub_view_size: int,
+    memory_bytes: int = DEFAULT_TILE_MEMORY_BYTES,
+    dtype: torch.dtype = torch.float32,
+) -> tuple[int, int, int]:
+    """Tile side, stride and batch for a model and a sub-view size within a memory budget.
+
+    The whole sub-view is one tile when its working memory
+    (:meth:`~svcode_core.network.SVCoDe.working_bytes_per_pixel`) fits in
+    ``memory_bytes``: nothing is computed twice and there are no seams. Otherwise the
+    tile is the largest multiple of the model stride that fits, and tiles overlap by the
+    model's receptive radius (rounded up to the stride, at most half a tile), so every
+    pixel is computed about ``(P / (P - overlap))²`` times instead of 4 times at stride
+    ``P / 2``; as many tiles as fit run in one batch.
+
+    Parameters
+    ----------
+    model : torch.nn.Module
+        An SV-CoDe model (with ``stride``, ``working_bytes_per_pixel`` and
+        ``receptive_radius``).
+    sub_view_size : int
+        ``S``.
+    memory_bytes : int
+        Working-memory budget of one batch.
+    dtype : torch.dtype
+        Compute dtype.
+
+    Returns
+    -------
+    tuple of int
+        ``(tile, stride, batch)``.
+
+    Examples
+    --------
+    >>> from svcode_core.network import ModelConfig, SVCoDe
+    >>> plan_tiles(SVCoDe(ModelConfig.mini()), 384)
+    (384, 384, 1)
+    >>> plan_tiles(SVCoDe(ModelConfig.reference()), 2400)
+    (400, 272, 1)
+    """
+    step, per_pixel = model.stride, model.working_bytes_per_pixel(dtype)
+    padded = math.ceil(sub_view_size / step) * step
+    if padded**2 * per_pixel <= memory_bytes:
+        return sub_view_size, sub_view_size, 1
+    side = max(step, math.isqrt(memory_bytes // per_pixel) // step * step)
+    side = min(side, sub_view_size)
+    overlap = min(math.ceil(model.receptive_radius() / step) * step, side // 2)
+    batch = max(1, memory_bytes // (side**2 * per_pixel))
+    return side, max(side - overlap, 1), batch
+
+
+def _relay(
+    tiled: Generator[TileProgress, None, Any], index: int, count: int
+) -> Generator[FrameProgress, None, Any]:
+    """Re-yield a frame's tile progress as :class:`FrameProgress`; return its output."""
+    while True:
+        try:
+            progress = next(tiled)
+        except StopIteration as stop:
+            return stop.value
+        try:
+            yield FrameProgress(index, count, progress.done, progress.total)
+        except GeneratorExit:
+            tiled.close()
+            raise
+
+
+class Reconstructor(BaseReconstructor):
+    """Tiled SV-CoDe reconstruction of raw CM² frames.
+
+    Parameters
+    ----------
+    model : torch.nn.Module
+        ``model(views (B, 9, P, P), origins (B, 2) long, sub_view_size) ->
+        (demixed (B, 9, P, P), reconstruction (B, 1, P, P))``.
+    system : SystemConfig
+        The instrument the frames come from (and the model was trained for).
+    device : str
+        ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or ``"mps"``.
+    precision : {"fp32", "bf16", "fp16"}
+    tile_size : int, optional
+        Tile side ``P``. Default: :func:`plan_tiles` within ``tile_memory_bytes`` (the
+        whole sub-view when it fits) for an SV-CoDe model, else ``system.patch_size``.
+    stride : int, optional
+        Default: the planned stride with the planned tile, ``system.patch_stride`` with
+        the system's patch size, else ``tile_size // 2``.
+    batch_size : int, optional
+        Tiles per model call; default planned (8 with the system's patch size).
+    skip_empty : bool
+        Skip tiles without signal (see :mod:`svcode_core.methods.tiling`).
+    skip_factor : float
+        ``k`` of the skip threshold ``dark_offset + k · noise_floor``.
+    mask_cache_bytes : int
+        Memory for frozen coordinate masks (:meth:`SVCoDe.cache_masks`), reused by every
+        tile and frame; 0 recomputes them for each batch. The default (1 GiB) holds all of
+        the bundled ``cm2-mini`` model's masks (640 MiB, :meth:`SVCoDe.mask_field_bytes`);
+        a smaller budget caches part of them (256 MiB: about 4× slower on ``cm2-mini``).
+        Models whose masks sit on a lattice (``ModelConfig.mask_spacing``) need no cache.
+    tile_memory_bytes : int
+        Working-memory budget of one batch of tiles for the default tiling.
+
+    Examples
+    --------
+    A trained model comes from a file (``Reconstructor.from_weights(path, device="cuda")``)
+    or with the package (:meth:`pretrained`); here an untrained one on a small system:
+
+    >>> from svcode_core.config import SystemConfig
+    >>> tiny = SystemConfig.tiny()  # sensor 60 × 80, sub-views 48 × 48
+    >>> from svcode_core.network import ModelConfig, SVCoDe
+    >>> rec = Reconstructor(SVCoDe(ModelConfig.mini()), tiny)
+    >>> result = rec(np.full((60, 80), 0.1, dtype=np.float32))
+    >>> result.reconstruction.shape, result.tiles_total
+    ((48, 48), 1)
+    """
+
+    method = "svcode"
+
+    def __init__(
+        self,
+        model: torch.nn.Module,
+        system: SystemConfig,
+        device: str | torch.device = "cpu",
+        precision: str = "fp32",
+        tile_size: int | None = None,
+        stride: int | None = None,
+        batch_size: int | None = None,
+        skip_empty: bool = True,
+        skip_factor: float = DEFAULT_SKIP_FACTOR,
+        mask_cache_bytes: int = DEFAULT_MASK_CACHE_BYTES,
+        tile_memory_bytes: int = DEFAULT_TILE_MEMORY_BYTES,
+    ) -> None:
+        if not isinstance(system, SystemConfig):
+            raise TypeError(f"system must be a SystemConfig, got {type(system).__name__}")
+        self.system = system.validate()
+        self.device = resolve_device(device)
+        precision_dtype(precision, self.method)
+        if precision == "fp16" and self.device.type == "cpu":
+            raise ValueError("precision: fp16 is not supported on the CPU; use bf16 or fp32")
+        self.precision = precision
+        planned_batch = 8
+        if tile_size is None and hasattr(model, "working_bytes_per_pixel"):
+            dtype = PRECISIONS[precision]
+            tile_size, planned, planned_batch = plan_tiles(
+                model, system.sub_view_size, tile_memory_bytes, dtype)
+            stride = planned if stride is None else stride
+        elif tile_size is None:
+            tile_size = system.patch_size
+            stride = system.patch_stride if stride is None else stride
+        elif stride is None:
+            stride = max(tile_size // 2, 1)
+        self.grid = TileGrid(system.sub_view_size, tile_size, stride)
+        batch_size = planned_batch if batch_size is None else batch_size
+        if not isinstance(batch_size, int) or batch_size < 1:
+            raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
+        self.batch_size = batch_size
+        if not math.isfinite(skip_factor) or skip_factor < 0:
+            raise ValueError(f"skip_factor must be a finite number >= 0, got {skip_factor!r}")
+        self.skip_empty = skip_empty
+        self.skip_threshold = system.noise.dark_offset + skip_factor * noise_floor(system.noise)
+        self.model = model.to(self.device).eval()
+        if not isinstance(mask_cache_bytes, int) or mask_cache_bytes < 0:
+            raise ValueError(f"mask_cache_bytes must be a non-negative integer, "
+                             f"got {mask_cache_bytes!r}")
+        if hasattr(self.model, "cache_masks"):
+            self.model.cache_masks(enabled=mask_cache_bytes > 0, max_bytes=mask_cache_bytes)
+
+    @classmethod
+    def from_weights(
+        cls, path: str | Path, system: SystemConfig | None = None, **options: Any
+    ) -> Reconstructor:
+        """Load a trained model (and its system, unless given) and wrap it.
+
+        ``options`` are those of the constructor (``device``, ``precision`` ...).
+        """
+        from .model_file import load_model
+
+        model, system = load_model(path, system=system, device=options.get("device", "cpu"))
+        return cls(model, system, **options)
+
+    @classmethod
+    def pretrained(cls, system: SystemConfig | str = "cm2-mini", **options: Any) -> Reconstructor:
+        """The model bundled with the package for ``system`` (a configuration or a name).
+
+        Raises
+        ------
+        FileNotFoundError
+            If no model is bundled for that system.
+        """
+        from ..pretrained import require_bundled_weights
+
+        path = require_bundled_weights(system)
+        return cls.from_weights(path, system if isinstance(system, SystemConfig) else None,
+                                **options)
+
+    # ------------------------------------------------------------------ input
+    def prepare(self, frame: np.ndarray, index: int = 0) -> np.ndarray:
+        """One raw frame → its nine sub-views ``(9, S, S)`` float32 (checked, clipped at 0)."""
+        values = finite_frame(frame, index)
+        values = np.maximum(values, 0.0)
+        padded = pad_sensor_frame(torch.from_numpy(values), self.system)
+        return np.ascontiguousarray(extract_sub_views(padded, self.system).numpy())
+
+    # ------------------------------------------------------------------ model
+    def _autocast(self) -> contextlib.AbstractContextManager:
+        if self.precision == "fp32":
+            return contextlib.nullcontext()
+        return torch.autocast(self.device.type, dtype=PRECISIONS[self.precision])
+
+    def _run_batch(
+        self, tiles: np.ndarray, origins: np.ndarray, want_views: bool
+    ) -> tuple[np.ndarray | None, np.ndarray]:
+        with torch.inference_mode(), self._autocast():
+            inputs = torch.from_numpy(tiles).to(self.device)
+            where = torch.from_numpy(np.ascontiguousarray(origins)).to(self.device)
+            demixed, recon = self.model(inputs, where, self.system.sub_view_size)
+        views = demixed.float().cpu().numpy() if want_views else None
+        return views, recon.float().cpu().numpy()
+
+    # ---------------------------------------------------------------- running
+    def iter_reconstruct(
+        self,
+        frames: Any,
+        return_views: bool = False,
+        cancel: threading.Event | None = None,
+    ) -> Generator[FrameProgress, None, ReconstructionResult]:
+        """Generator form of :meth:`reconstruct`: yields progress after every batch of tiles.
+
+        Stop it with ``.close()`` or by setting ``cancel`` (then
+        :class:`~svcode_core.methods.tiling.Cancelled` is raised); the result is the generator's
+        return value.
+        """
+        stack = self.check_frames(frames)
+        single = np.asarray(frames).ndim == 2
+        count, size = stack.shape[0], self.system.sub_view_size
+        recon = np.empty((count, size, size), dtype=np.float32)
+        views = np.empty((count, 9, size, size), dtype=np.float32) if return_views else None
+        result = ReconstructionResult(recon, views)
+        timings = dict.fromkeys(("prepare", "model", "blend", "total"), 0.0)
+        start_all = time.perf_counter()
+
+        def run(tiles: np.ndarray, origins: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+            return self._run_batch(tiles, origins, return_views)
+
+        for index in range(count):
+            start = time.perf_counter()
+            sub_views = self.prepare(stack[index], index)
+            active = None
+            if self.skip_empty:
+                active = tiles_with_signal(sub_views, self.grid, self.skip_threshold)
+            timings["prepare"] += time.perf_counter() - start
+            start = time.perf_counter()
+            tiled = iter_tiled(
+                run, sub_views, self.grid, self.batch_size, active, return_views, cancel
+            )
+            output = yield from _relay(tiled, index, count)
+            timings["model"] += output.model_seconds
+            timings["blend"] += time.perf_counter() - start - output.model_seconds
+            recon[index] = output.reconstruction
+            if views is not None:
+                views[index] = output.views
+            result.tiles_run += output.tiles_run
+            result.tiles_skipped += output.tiles_skipped
+        result.tiles_total = result.tiles_run + result.tiles_skipped
+        timings["total"] = time.perf_counter() - start_all
+        result.timings = timings
+        if single:
+            result.reconstruction = recon[0]
+            result.views = None if views is None else views[0]
+        return result

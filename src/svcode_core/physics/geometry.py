@@ -1,0 +1,193 @@
+"""Coordinates, sub-view extraction and placement, sensor truncation.
+
+Every map here is linear and comes with its exact adjoint, so that model-based solvers
+can compose them with the low-rank blur (see :mod:`svcode_core.physics.cm2`). Conventions are
+those of :mod:`svcode_core.config`: ``(row, col)`` order, normalised coordinates in
+``[-1, 1]`` from the first to the last pixel centre, lenses row-major.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..config import N_LENSES, SystemConfig
+
+__all__ = [
+    "assemble_frame",
+    "crop_to_sensor",
+    "extract_sub_views",
+    "normalized_coordinates",
+    "pad_sensor_frame",
+    "place_sub_views",
+    "sub_view_origins",
+]
+
+
+def normalized_coordinates(
+    size: int,
+    start: int = 0,
+    length: int | None = None,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str | None = None,
+) -> torch.Tensor:
+    """Normalised coordinates of pixels ``start .. start + length - 1`` of a ``size`` grid.
+
+    Pixel ``i`` of a grid of ``size`` pixels sits at ``2 i / (size - 1) - 1``, so the first
+    and last pixel centres are exactly ``-1`` and ``1``. Pixels outside ``[0, size)``
+    (for example the padding of a tile) continue the same line beyond ``[-1, 1]``.
+    Computed in float64 and cast, so every value is the correctly rounded one.
+
+    Parameters
+    ----------
+    size : int
+        Number of pixels of the full grid (the sub-view size ``S``), at least 2.
+    start : int
+        Index of the first pixel wanted (may be negative).
+    length : int, optional
+        Number of pixels wanted; defaults to ``size - start``.
+    dtype, device
+        Of the returned tensor.
+
+    Returns
+    -------
+    torch.Tensor
+        Shape ``(length,)``.
+
+    Examples
+    --------
+    >>> normalized_coordinates(5).tolist()
+    [-1.0, -0.5, 0.0, 0.5, 1.0]
+    """
+    if size < 2:
+        raise ValueError(f"size must be at least 2, got {size}")
+    if length is None:
+        length = size - start
+    index = torch.arange(start, start + length, dtype=torch.float64, device=device)
+    return (2.0 * index / (size - 1) - 1.0).to(dtype)
+
+
+def sub_view_origins(config: SystemConfig) -> np.ndarray:
+    """Top-left padded-frame pixel of each sub-view, shape ``(9, 2)`` integer ``(row, col)``."""
+    half = config.sub_view_size // 2
+    return np.asarray(config.chief_rays, dtype=np.int64) - half
+
+
+def _check_frame(frame: torch.Tensor, shape: tuple[int, int], what: str) -> None:
+    if not isinstance(frame, torch.Tensor):
+        raise TypeError(f"{what} must be a torch.Tensor, got {type(frame).__name__}")
+    if frame.ndim < 2 or tuple(frame.shape[-2:]) != tuple(shape):
+        raise ValueError(
+            f"{what} must have shape (..., {shape[0]}, {shape[1]}), got {tuple(frame.shape)}"
+        )
+
+
+def _overlap(origin: int, size: int, extent: int) -> tuple[int, int, int, int]:
+    """Intersection of ``[origin, origin + size)`` with ``[0, extent)``.
+
+    Returns ``(frame_start, frame_stop, crop_start, crop_stop)``.
+    """
+    lo = max(origin, 0)
+    hi = min(origin + size, extent)
+    if hi <= lo:
+        return 0, 0, 0, 0
+    return lo, hi, lo - origin, hi - origin
+
+
+def extract_sub_views(frame: torch.Tensor, config: SystemConfig, margin: int = 0) -> torch.Tensor:
+    """Cut the nine ``S × S`` sub-views out of a padded sensor frame.
+
+    Parts of a crop that fall outside the padded frame are zero.
+
+    Parameters
+    ----------
+    frame : torch.Tensor
+        Padded sensor frame(s), shape ``(..., H_pad, W_pad)``.
+    config : SystemConfig
+    margin : int
+        Extra pixels on every side of each crop: the crops are ``(S + 2·margin)`` square
+        and still centred on the chief rays.
+
+    Returns
+    -------
+    torch.Tensor
+        Shape ``(..., 9, S + 2·margin, S + 2·margin)``; view ``ℓ`` is centred on ``c_ℓ``.
+    """
+    _check_frame(frame, config.padded_shape, "padded sensor frame")
+    size = config.sub_view_size + 2 * margin
+    rows, cols = config.padded_shape
+    views = frame.new_zeros(*frame.shape[:-2], N_LENSES, size, size)
+    for lens, (r0, c0) in enumerate(sub_view_origins(config) - margin):
+        fr0, fr1, vr0, vr1 = _overlap(int(r0), size, rows)
+        fc0, fc1, vc0, vc1 = _overlap(int(c0), size, cols)
+        views[..., lens, vr0:vr1, vc0:vc1] = frame[..., fr0:fr1, fc0:fc1]
+    return views
+
+
+def place_sub_views(views: torch.Tensor, config: SystemConfig, margin: int = 0) -> torch.Tensor:
+    """Adjoint of :func:`extract_sub_views`: add each view back at its place in the frame.
+
+    Parameters
+    ----------
+    views : torch.Tensor
+        Shape ``(..., 9, S + 2·margin, S + 2·margin)``.
+    config : SystemConfig
+    margin : int
+        As in :func:`extract_sub_views`.
+
+    Returns
+    -------
+    torch.Tensor
+        Padded frame(s) ``(..., H_pad, W_pad)``: the sum of the placed views (overlaps add);
+        parts falling outside the frame are dropped.
+    """
+    size = config.sub_view_size + 2 * margin
+    if views.ndim < 3 or tuple(views.shape[-3:]) != (N_LENSES, size, size):
+        raise ValueError(
+            f"views must have shape (..., {N_LENSES}, {size}, {size}), got {tuple(views.shape)}"
+        )
+    rows, cols = config.padded_shape
+    frame = views.new_zeros(*views.shape[:-3], rows, cols)
+    for lens, (r0, c0) in enumerate(sub_view_origins(config) - margin):
+        fr0, fr1, vr0, vr1 = _overlap(int(r0), size, rows)
+        fc0, fc1, vc0, vc1 = _overlap(int(c0), size, cols)
+        frame[..., fr0:fr1, fc0:fc1] += views[..., lens, vr0:vr1, vc0:vc1]
+    return frame
+
+
+def assemble_frame(views: torch.Tensor, config: SystemConfig) -> torch.Tensor:
+    """The padded frame that the nine sub-views were cut from.
+
+    Every padded-frame pixel that some sub-view covers gets its value back (the views
+    that overlap there hold the same reading, averaged, so up to float rounding); pixels
+    no view covers are zero. In the presets the nine views tile the padded frame, so
+    this inverts :func:`extract_sub_views`.
+
+    Parameters
+    ----------
+    views : torch.Tensor
+        Shape ``(..., 9, S, S)``, as returned by :func:`extract_sub_views`.
+    config : SystemConfig
+
+    Returns
+    -------
+    torch.Tensor
+        Padded frame(s) ``(..., H_pad, W_pad)``.
+    """
+    size = config.sub_view_size
+    coverage = place_sub_views(views.new_ones(N_LENSES, size, size), config)
+    return place_sub_views(views, config) / coverage.clamp(min=1)
+
+
+def crop_to_sensor(frame: torch.Tensor, config: SystemConfig) -> torch.Tensor:
+    """Raw sensor reading from a padded frame: the sensor window, shape ``(..., *sensor)``."""
+    _check_frame(frame, config.padded_shape, "padded sensor frame")
+    rows, cols = config.sensor_window
+    return frame[..., rows, cols]
+
+
+def pad_sensor_frame(sensor: torch.Tensor, config: SystemConfig) -> torch.Tensor:
+    """Adjoint of :func:`crop_to_sensor`: zero-pad a raw frame to the padded shape."""
+    _check_frame(sensor, config.sensor_shape, "raw sensor frame")
+    pad_r, pad_c = config.padding
+    return torch.nn.functional.pad(sensor, (pad_c, pad_c, pad_r, pad_r))

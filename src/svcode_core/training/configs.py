@@ -1,0 +1,74 @@
+"""Which model a training run builds: the configuration of every trainable method.
+
+SV-CoDe is configured by :class:`~svcode_core.network.ModelConfig` (presets ``mini`` and
+``reference``, and the ablations of :data:`ABLATIONS`); each learned baseline by the
+configuration class of its model (:data:`~svcode_core.methods.learned.LEARNED_MODELS`).
+The method names are those of :mod:`svcode_core.methods.registry`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..methods import registry
+from ..methods.learned import LEARNED_MODELS, FourierNetConfig, MultiWienerConfig
+from ..network import ModelConfig
+
+__all__ = ["ABLATIONS", "AnyModelConfig", "config_class", "model_config_from"]
+
+AnyModelConfig = ModelConfig | MultiWienerConfig | FourierNetConfig
+
+#: SV-CoDe ablations: name → the configuration fields they change
+ABLATIONS = {
+    "none": {},
+    "no-coordgate": {"coord_gate": False},
+    "no-pe": {"positional_encoding": False},
+}
+
+
+def config_class(method: str) -> type:
+    """The configuration class of trainable ``method``.
+
+    Examples
+    --------
+    >>> config_class("svcode").__name__, config_class("fouriernet").__name__
+    ('ModelConfig', 'FourierNetConfig')
+    """
+    if method not in registry.TRAINABLE_METHODS:
+        raise ValueError(f"method: {method!r} is not trained; trainable methods are "
+                         f"{', '.join(registry.TRAINABLE_METHODS)}")  # fmt: skip
+    if method in registry.LEARNED_METHODS:
+        return LEARNED_MODELS[registry.method(method).architecture].config_class
+    return ModelConfig
+
+
+def model_config_from(spec: str, ablation: str = "none", method: str = "svcode") -> AnyModelConfig:
+    """The configuration of ``method`` from ``"mini"``, ``"reference"`` (SV-CoDe only) or a
+    JSON file, with an ablation (SV-CoDe only).
+
+    Examples
+    --------
+    >>> model_config_from("mini", "no-pe").positional_encoding
+    False
+    """
+    cls = config_class(method)
+    if cls is not ModelConfig:
+        if ablation != "none":
+            raise ValueError(f"--ablation applies to SV-CoDe, not to --method {method}")
+        if spec == "mini":
+            return cls().validate()
+        path = _config_file(spec, "neither mini nor")
+        return cls.from_json(path.read_text(encoding="utf-8"))
+    if spec in ("mini", "reference"):
+        config = getattr(ModelConfig, spec)()
+    else:
+        path = _config_file(spec, "neither mini, reference nor")
+        config = ModelConfig.from_json(path.read_text(encoding="utf-8"))
+    return config.replace(**ABLATIONS[ablation])
+
+
+def _config_file(spec: str, presets: str) -> Path:
+    path = Path(spec)
+    if not path.is_file():
+        raise FileNotFoundError(f"--model-config {spec!r}: {presets} an existing JSON file")
+    return path
