@@ -134,3 +134,15 @@ def test_a_registration_no_rigid_array_explains_is_not_applied(drifted, tmp_path
     assert main(["reconstruct", str(tmp_path / "meas.tif"), "--method", "wiener", "--register",
                  "--out", str(tmp_path / "out.tif"), "--quiet"]) == 0
     assert "warning: self-registration not applied: lens 3" in capsys.readouterr().out
+
+
+def test_a_model_applies_to_its_system_with_moved_chief_rays(tiny_system, tiny_weights):
+    from svcode_core.methods.svcode import Reconstructor
+
+    rays = list(tiny_system.chief_rays)
+    rays[0] = (rays[0][0] + 1, rays[0][1] - 1)
+    moved = tiny_system.replace(chief_rays=tuple(rays))
+    reconstructor = Reconstructor.from_weights(tiny_weights, moved)
+    assert reconstructor.system == moved  # sub-views cut at the moved rays
+    with pytest.raises(ValueError, match="rank_tolerance"):
+        Reconstructor.from_weights(tiny_weights, moved.replace(rank_tolerance=0.5))

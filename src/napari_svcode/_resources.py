@@ -8,7 +8,7 @@ from pathlib import Path
 import torch
 
 from svcode_core.config import SystemConfig
-from svcode_core.methods.model_file import load_model
+from svcode_core.methods.model_file import PLACEMENT_FIELDS, load_model
 from svcode_core.physics.simulate import Simulator
 from svcode_core.pretrained import bundled_weights as bundled_model
 
@@ -26,11 +26,6 @@ NO_BUNDLED_MODEL = (
     "No bundled SV-CoDe model is installed for this system; choose 'model file' and select "
     "a .safetensors model trained for this system"
 )
-
-
-#: System fields an SV-CoDe model does not depend on. The chief rays only say where the
-#: sub-views are cut; the model sees the sub-views and tile coordinates relative to them.
-PLACEMENT_FIELDS = ("chief_rays",)
 
 
 def cached_model(path: str | Path, system: SystemConfig | None = None):

@@ -271,7 +271,11 @@ def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     recorded: dict = {}
     if args.register:
-        system, recorded = _register(args, system)
+        moved, recorded = _register(args, system)
+        # a network sees only where the sub-views are cut: it takes the moved chief rays,
+        # the model-based methods the moved PSFs as well
+        system = moved if args.method in MODEL_BASED_METHODS else system.replace(
+            chief_rays=moved.chief_rays)
     spec = _spec(args, system)
     summary = reconstruct_file(
         args.input,

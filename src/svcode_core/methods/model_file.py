@@ -125,6 +125,12 @@ def read_model_metadata(path: str | Path) -> dict[str, Any]:
     }
 
 
+#: System fields a model does not depend on: the chief rays only say where the sub-views
+#: are cut, and a model sees the sub-views with coordinates relative to them, so it applies
+#: unchanged to a system whose chief rays moved (calibrated, self-registered, nudged).
+PLACEMENT_FIELDS = ("chief_rays",)
+
+
 def load_model(
     path: str | Path,
     system: SystemConfig | None = None,
@@ -137,7 +143,7 @@ def load_model(
     path : str or Path
     system : SystemConfig, optional
         The instrument the caller will use the model on; a model trained for a different
-        system is refused.
+        system (other than in :data:`PLACEMENT_FIELDS`) is refused.
     device : torch.device or str
 
     Returns
@@ -154,7 +160,8 @@ def load_model(
     meta = read_model_metadata(path)
     stored: SystemConfig = meta["system"]
     if system is not None:
-        differences = _differences(system.to_dict(), stored.to_dict())
+        placed = system.replace(**{name: getattr(stored, name) for name in PLACEMENT_FIELDS})
+        differences = _differences(placed.to_dict(), stored.to_dict())
         if differences:
             raise ValueError(
                 f"{path}: the model was trained for system {stored.name!r}, which differs "

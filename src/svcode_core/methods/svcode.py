@@ -232,12 +232,15 @@ class Reconstructor(BaseReconstructor):
     ) -> Reconstructor:
         """Load a trained model (and its system, unless given) and wrap it.
 
-        ``options`` are those of the constructor (``device``, ``precision`` ...).
+        ``system`` may differ from the model's training system in its chief rays only
+        (:data:`~svcode_core.methods.model_file.PLACEMENT_FIELDS`): the sub-views are then
+        cut at its rays. ``options`` are those of the constructor (``device``,
+        ``precision`` ...).
         """
         from .model_file import load_model
 
-        model, system = load_model(path, system=system, device=options.get("device", "cpu"))
-        return cls(model, system, **options)
+        model, trained = load_model(path, system=system, device=options.get("device", "cpu"))
+        return cls(model, trained if system is None else system, **options)
 
     @classmethod
     def pretrained(cls, system: SystemConfig | str = "cm2-mini", **options: Any) -> Reconstructor:

@@ -78,8 +78,8 @@ class LearnedReconstructor(FrameByFrame):
                              f"{learned.get(method, method)} (--method {method})")
         if architecture not in learned.values():
             raise ValueError(f"{Path(path).name} holds a {architecture}, not a learned baseline")
-        model, system = load_model(path, system=system, device=options.get("device", "cpu"))
-        return cls(model, system, **options)
+        model, trained = load_model(path, system=system, device=options.get("device", "cpu"))
+        return cls(model, trained if system is None else system, **options)
 
     def reconstruct_frame(
         self, frame: np.ndarray, index: int, return_views: bool
