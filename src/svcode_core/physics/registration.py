@@ -77,11 +77,10 @@ def _lens_frames(operator: CM2Operator, estimate: np.ndarray) -> np.ndarray:
     system = operator.system
     x = torch.as_tensor(np.clip(estimate, 0.0, None), dtype=operator.lenses.dtype)
     with torch.no_grad():
-        blur = operator.lens_blur(x)
-        frames = [crop_to_sensor(place_sub_views(
-            torch.where(torch.arange(N_LENSES)[:, None, None] == lens, blur, 0.0),
-            system, operator.margin), system) for lens in range(N_LENSES)]  # fmt: skip
-    return torch.stack(frames).double().numpy()
+        blur = operator.lens_blur(x)  # (9, S', S')
+        alone = blur * torch.eye(N_LENSES, dtype=blur.dtype)[:, :, None, None]  # lens ℓ only
+        frames = crop_to_sensor(place_sub_views(alone, system, operator.margin), system)
+    return frames.double().numpy()
 
 
 def _fit_moves(frame: np.ndarray, lens_frames: np.ndarray, limit: float) -> np.ndarray:
@@ -92,17 +91,22 @@ def _fit_moves(frame: np.ndarray, lens_frames: np.ndarray, limit: float) -> np.n
     gradient.
     """
 
-    def render(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        moves = p[2:].reshape(N_LENSES, 2)
-        images = np.stack([ndimage.shift(image, move, order=3, mode="nearest")
-                           for image, move in zip(lens_frames, moves, strict=True)])
-        return images, p[0] * images.sum(axis=0) + p[1]
+    last: dict[bytes, np.ndarray] = {}  # the shifted images at the last point asked
+
+    def shifted(p: np.ndarray) -> np.ndarray:
+        key = p[2:].tobytes()
+        if key not in last:  # the residual and the Jacobian come at the same point
+            moves = p[2:].reshape(N_LENSES, 2)
+            last.clear()
+            last[key] = np.stack([ndimage.shift(image, move, order=3, mode="nearest")
+                                  for image, move in zip(lens_frames, moves, strict=True)])
+        return last[key]
 
     def residual(p: np.ndarray) -> np.ndarray:
-        return (render(p)[1] - frame).ravel()
+        return (p[0] * shifted(p).sum(axis=0) + p[1] - frame).ravel()
 
     def jacobian(p: np.ndarray) -> np.ndarray:
-        images, _ = render(p)
+        images = shifted(p)
         columns = [images.sum(axis=0).ravel(), np.ones(frame.size)]
         for image in images:
             rows, cols = np.gradient(image)
