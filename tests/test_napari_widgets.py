@@ -313,6 +313,14 @@ def test_calibrate_a_scan_layer_without_a_raw_frame_and_cancel(qtbot, tmp_path, 
     assert scan.metadata[SYSTEM_KEY] == widget.calibration.system  # the scan itself
     assert "chief rays" in viewer.layers and "spots" in viewer.layers
     assert viewer.dims.current_step[0] == 12  # the frame whose spots are shown
+    psfs = widget.calibration.psfs  # (9, G·G, k, k): lens 4's centre field point
+    grid, k = int(np.sqrt(psfs.shape[1])), psfs.shape[-1]
+    layer = widget.show_psf_grid()
+    assert layer.name == "calibrated PSFs" and layer.data.shape == (3 * grid * k,) * 2
+    centre = layer.data[grid * k:2 * grid * k, grid * k:2 * grid * k]
+    np.testing.assert_array_equal(centre[(grid // 2) * k:(grid // 2 + 1) * k,
+                                         (grid // 2) * k:(grid // 2 + 1) * k],
+                                  psfs[4, (grid // 2) * grid + grid // 2])
 
     calibrated = widget.calibration  # a cancelled second run keeps the first calibration
     widget._system_choice.source.value = widget._system_choice.FROM_FILE
@@ -355,6 +363,53 @@ def test_calibration_errors_are_one_notification_each(qtbot, tmp_path, scan_file
     assert len(errors) == 4 and "25 frames but the positions list 24" in errors[-1]
     assert "Traceback" not in errors[-1] and widget.calibration is None
     assert widget.save_calibration() is None and "No calibration" in errors[-1]
+
+
+def test_self_registration_moves_the_rays_saves_and_refuses_what_no_drift_explains(
+        qtbot, monkeypatch, tmp_path, tiny_system, make_napari_viewer, errors):
+    import svcode_core.methods.baselines.self_registration as core
+    from svcode_core.config import load_system
+    from svcode_core.phantoms import make_object
+    from svcode_core.physics.departures import Departures
+    from svcode_core.physics.simulate import Simulator
+
+    # the drift and frame of tests/test_registration.py: 0.24 px there
+    drift = Departures(name="drift", mla_shift_px=(0.8, -0.5), mla_rotation_deg=1.0,
+                       lens_jitter_px=0.4, seed=5)
+    obj = make_object("cells", tiny_system.sub_view_size, 1)
+    frame = Simulator(tiny_system, departures=drift).simulate(obj, seed=2).measurement
+    viewer = make_napari_viewer()
+    raw = viewer.add_image(np.stack([frame, frame]), name="raw",
+                           metadata=layer_metadata(tiny_system, "measurement"))
+    widget = _dock(viewer, CalibrationWidget)
+    widget._register_folder.value = tmp_path / "reg"
+    assert widget.start_registration() is not None and not widget._register.enabled
+    widget.cancel()  # stops before the first round
+    qtbot.waitUntil(lambda: widget._register.enabled, timeout=60_000)
+    assert widget._status.value == "Self-registration cancelled." and not errors
+    assert raw.metadata[SYSTEM_KEY] == tiny_system and not (tmp_path / "reg").exists()
+
+    assert widget.start_registration() is not None
+    qtbot.waitUntil(lambda: widget._register.enabled, timeout=120_000)
+    assert not errors and widget._status.value.startswith("Registered: array shift")
+    moved = load_system(tmp_path / "reg" / "system.json")
+    assert raw.metadata[SYSTEM_KEY] == moved and moved.psf_model is not None
+    relative = drift.lens_offsets(tiny_system) - drift.lens_offsets(tiny_system)[4]
+    error = np.linalg.norm(widget.registration.offsets - relative, axis=1)
+    assert error.max() < 0.3 < np.linalg.norm(relative, axis=1).max(), error
+    np.testing.assert_allclose(viewer.layers["chief rays"].data,
+                               np.asarray(moved.chief_rays) - np.asarray(moved.padding))
+    assert (tmp_path / "reg" / "registration.json").is_file()
+
+    def misled(*args, **kwargs):  # what a dense scene does: one lens far off the array
+        raise core.RegistrationRejected("self-registration not applied: lens 2 would move "
+                                        "3.7 px away from the rest of the array")
+
+    monkeypatch.setattr("napari_svcode.widgets.calibration.register_recording", misled)
+    assert widget.start_registration() is not None
+    qtbot.waitUntil(lambda: widget._register.enabled, timeout=60_000)
+    assert len(errors) == 1 and "lens 2 would move 3.7 px" in errors[-1]
+    assert "bead scan" in errors[-1] and raw.metadata[SYSTEM_KEY] == moved
 
 
 def test_a_moved_sub_view_box_keeps_the_bundled_model(qtbot, monkeypatch, tmp_path, tiny_system,

@@ -1,5 +1,6 @@
 """Calibration dock widget: chief rays over the raw frame and one sub-view box, editable;
-a calibration from a point-source scan, run in a worker thread."""
+a calibration from a point-source scan and a self-registration from the raw frame, each
+run in a worker thread."""
 
 from __future__ import annotations
 
@@ -26,6 +27,12 @@ from qtpy.QtCore import QObject, Qt, Signal
 from qtpy.QtGui import QFontDatabase
 
 from svcode_core.config import ConfigError, SystemConfig
+from svcode_core.evaluation.figures import psf_montage
+from svcode_core.methods.baselines.self_registration import (
+    REGISTRATION_FRAMES,
+    RegistrationRejected,
+    register_recording,
+)
 from svcode_core.physics.calibration import (
     Calibration,
     CalibrationError,
@@ -34,6 +41,7 @@ from svcode_core.physics.calibration import (
     report_text,
     save_calibration,
 )
+from svcode_core.physics.registration import Registration
 
 from .._errors import notify_warning
 from .._layers import (
@@ -50,6 +58,7 @@ __all__ = ["CalibrationWidget"]
 BOXES = "sub-views"
 RAYS = "chief rays"
 SPOTS = "spots"
+PSF_GRID = "calibrated PSFs"
 #: the spots layer: measured centroids and those the fitted chief rays predict
 SPOT_STYLE = {"measured": ("disc", "#00e5ff"), "predicted": ("cross", "#ff4fd8")}
 #: progress-bar steps of a calibration
@@ -65,25 +74,25 @@ class _ProgressRelay(QObject):
 
 
 class _Cancelled(Exception):
-    """Raised in the calibration thread, at its next progress report, after *Cancel*."""
+    """Raised in the worker thread, at its next progress report, after *Cancel*."""
 
 
 @dataclass(frozen=True)
 class _Failed:
-    """What :func:`_calibrate_or_failed` returns when the calibration raised ``error``."""
+    """What :func:`_returning_failure` gives back when the work raised ``error``."""
 
     error: Exception
 
 
-def _calibrate_or_failed(*args: Any, **kwargs: Any) -> Calibration | _Failed:
-    """:func:`~svcode_core.physics.calibration.calibrate`, returning the exception it raises.
+def _returning_failure(work: Any, *args: Any, **kwargs: Any) -> Any:
+    """``work(*args, **kwargs)``, returning the exception it raises as :class:`_Failed`.
 
     The worker then never errs: napari 0.9's task-status handler of an erring worker
     raises a ``TypeError`` of its own (a second notice, with a traceback). The exception
     keeps its traceback for the log.
     """
     try:
-        return calibrate(*args, **kwargs)
+        return work(*args, **kwargs)
     except Exception as err:  # noqa: BLE001 - the thread boundary: shown as one notice
         return _Failed(err)
 
@@ -110,6 +119,14 @@ class CalibrationWidget(Container):
     the fit predicts for one frame, and the report is shown. *Save calibration* writes
     the folder of :func:`~svcode_core.physics.calibration.save_calibration` (``system.json`` with
     its PSF stack) and gives the raw layer that saved system.
+
+    *Self-register*: estimates a small drift of the lens array from the raw layer itself
+    (the mean of its first frames;
+    :func:`~svcode_core.methods.baselines.self_registration.register_recording`) in a
+    worker, with the same progress and *Cancel*; writes the moved system (its PSFs beside
+    it) and ``registration.json`` into the chosen folder, applies it to the raw layer and
+    redraws the chief rays. A registration no rigid lens array explains (the scene misled
+    it) is refused with a notice and changes nothing.
     """
 
     def __init__(self, napari_viewer: napari.viewer.Viewer) -> None:
@@ -148,13 +165,28 @@ class CalibrationWidget(Container):
         self._report.read_only = True
         self._report.native.setLineWrapMode(self._report.native.LineWrapMode.NoWrap)
         self._report.native.setFont(QFontDatabase.systemFont(QFontDatabase.SystemFont.FixedFont))
+        self._show_psfs = PushButton(
+            text="Show PSF grid", enabled=False,
+            tooltip="add the calibrated PSFs as a layer: one square per lens (row by row), "
+                    "its field points inside")
         self._folder = FileEdit(label="save calibration to", mode="d", value="calibration")
         self._save_calibration = PushButton(text="Save calibration", enabled=False)
+        self._register_title = Label(value="<b>Self-register from the raw frame</b>")
+        self._register_folder = FileEdit(
+            label="save registration to", mode="d", value="registration",
+            tooltip="receives system.json (the moved chief rays), psfs.tif and "
+                    "registration.json (the lens offsets found)")
+        self._register = PushButton(
+            text="Self-register",
+            tooltip="estimate a drift of the lens array (up to a pixel or two) from the raw "
+                    f"layer: the mean of its first {REGISTRATION_FRAMES} frames, about "
+                    "two minutes on cm2-mini")
         super().__init__(widgets=[
             self._layer, self._system_choice, self._show, self._lens, self._out, self._save,
             self._scan_title, self._scan, self._positions, self._dark, self._tolerance,
             self._calibrate, self._cancel, self._progress, self._status, self._spot_frame,
-            self._report, self._folder, self._save_calibration,
+            self._report, self._show_psfs, self._folder, self._save_calibration,
+            self._register_title, self._register_folder, self._register,
         ])
         self._show.changed.connect(self.show_sub_views)
         self._save.changed.connect(self.save)
@@ -163,10 +195,13 @@ class CalibrationWidget(Container):
         self._cancel.changed.connect(self.cancel)
         self._spot_frame.changed.connect(self._draw_spots)
         self._save_calibration.changed.connect(self.save_calibration)
+        self._show_psfs.changed.connect(self.show_psf_grid)
+        self._register.changed.connect(self.start_registration)
         self._relay = _ProgressRelay()
         self._relay.progress.connect(self._on_progress, Qt.ConnectionType.QueuedConnection)
         self.system: SystemConfig | None = None
         self.calibration: Calibration | None = None
+        self.registration: Registration | None = None
         self._calibrated_from: dict[str, Any] = {}  # the nominal system and the frames
         self.worker: FunctionWorker | None = None
         self._raw: napari.layers.Image | None = None
@@ -370,6 +405,47 @@ class CalibrationWidget(Container):
         run = self._read_scan()
         if run is None:
             return None
+        return self._start(
+            calibrate, (run["frames"], run["positions"], run["nominal"]),
+            dict(dark=run["dark"], tolerance=run["tolerance"]), run,
+            f"Calibrating {run['nominal'].name} from {len(run['frames'])} frames…")
+
+    def start_registration(self) -> FunctionWorker | None:
+        """Check the raw layer and start self-registering it in a worker thread.
+
+        Returns ``None`` without running when a check fails.
+        """
+        layer = self._layer.value
+        if layer is None:
+            notify_error("No raw image layer.", "open a raw CM² frame first (File ▸ Open)")
+            return None
+        system = self.system if self._raw is layer and self.system is not None else None
+        try:
+            system = system or self._system_choice.system(layer.metadata)
+        except (ConfigError, FileNotFoundError) as err:
+            notify_error(err, "fix the system.json, or choose a preset")
+            return None
+        if system is None:
+            notify_error(f"Layer {layer.name!r} has no system configuration.",
+                         "choose a preset or a system.json file above")
+            return None
+        frames = np.asarray(layer.data[:REGISTRATION_FRAMES] if layer.ndim == 3 else layer.data)
+        if tuple(frames.shape[-2:]) != tuple(system.sensor_shape):
+            notify_error(
+                f"Layer {layer.name!r} is {frames.shape[-2]}×{frames.shape[-1]} pixels but "
+                f"system {system.name!r} has a {system.sensor_shape[0]}×"
+                f"{system.sensor_shape[1]} sensor.",
+                "choose the system of the instrument that recorded this frame")
+            return None
+        folder = Path(self._register_folder.value)
+        run = {"layer": layer, "nominal": system, "folder": folder}
+        return self._start(register_recording, (frames.reshape(-1, *frames.shape[-2:]),
+                                                system, folder), {}, run,
+                           f"Self-registering {layer.name!r}…")
+
+    def _start(self, work: Any, args: tuple, kwargs: dict, run: dict[str, Any],
+               status: str) -> FunctionWorker:
+        """Run ``work(*args, progress=..., **kwargs)`` in a worker with progress and cancel."""
         stop = threading.Event()
         relay = self._relay
 
@@ -378,21 +454,21 @@ class CalibrationWidget(Container):
                 raise _Cancelled
             relay.progress.emit(stage, fraction)
 
-        worker = thread_worker(_calibrate_or_failed, start_thread=False)(
-            run["frames"], run["positions"], run["nominal"], dark=run["dark"],
-            tolerance=run["tolerance"], progress=progress)
+        worker = thread_worker(_returning_failure, start_thread=False)(
+            work, *args, progress=progress, **kwargs)
         worker.returned.connect(self._on_returned)
-        worker.finished.connect(self._on_calibration_finished)
-        self._run = {**run, "stop": stop}
+        worker.finished.connect(self._on_finished)
+        self._run = {**run, "stop": stop, "work": work}
         self.worker = worker
-        self._calibrate.enabled, self._cancel.enabled = False, True
+        self._calibrate.enabled = self._register.enabled = False
+        self._cancel.enabled = True
         self._progress.value = 0
-        self._status.value = f"Calibrating {run['nominal'].name} from {len(run['frames'])} frames…"
+        self._status.value = status
         worker.start()
         return worker
 
     def cancel(self) -> None:
-        """Ask the calibration to stop at its next frame or lens."""
+        """Ask the running calibration or registration to stop at its next step."""
         if self._run:
             self._run["stop"].set()
         self._cancel.enabled = False
@@ -402,24 +478,50 @@ class CalibrationWidget(Container):
         # Widget updates only: never process events from a worker callback.
         if self._cancel.enabled:
             self._progress.value = round(STEPS * fraction)
-            self._status.value = f"Calibrating: {stage}"
+            self._status.value = f"{self._activity()}: {stage}"
 
-    def _on_returned(self, result: Calibration | _Failed) -> None:
+    def _activity(self) -> str:
+        return "Calibrating" if self._run.get("work") is calibrate else "Self-registering"
+
+    def _on_returned(self, result: Any) -> None:
         if isinstance(result, _Failed):
-            self._on_calibration_error(result.error)
-        else:
+            self._on_error(result.error)
+        elif self._run["work"] is calibrate:
             self._on_calibrated(result)
+        else:
+            self._on_registered(*result)
 
-    def _on_calibration_error(self, err: Exception) -> None:
+    def _on_error(self, err: Exception) -> None:
+        what = "Calibration" if self._run["work"] is calibrate else "Self-registration"
         if isinstance(err, _Cancelled):
-            self._status.value = "Calibration cancelled."
-            show_info("Calibration cancelled; nothing was changed.")
+            self._status.value = f"{what} cancelled."
+            show_info(f"{what} cancelled; nothing was changed.")
             return
-        self._status.value = "Calibration failed (see the notification)."
-        notify_error(err, "check the scan, its positions and the nominal system")
+        self._status.value = f"{what} failed (see the notification)."
+        if isinstance(err, RegistrationRejected):
+            notify_error(err, "calibrate from a bead scan, or keep the system as it is")
+        elif self._run["work"] is calibrate:
+            notify_error(err, "check the scan, its positions and the nominal system")
+        else:
+            notify_error(err, "check the raw frame, its system and the folder")
 
-    def _on_calibration_finished(self) -> None:
-        self._calibrate.enabled, self._cancel.enabled = True, False
+    def _on_finished(self) -> None:
+        self._calibrate.enabled = self._register.enabled = True
+        self._cancel.enabled = False
+
+    def _on_registered(self, system: SystemConfig, registration: Registration) -> None:
+        """Apply the registered system to the raw layer and redraw its chief rays."""
+        self.registration = registration
+        self._raw = self._run["layer"]
+        self._apply(system)
+        self._draw()
+        shift, moves = registration.shift, np.linalg.norm(registration.offsets, axis=1)
+        self._progress.value = STEPS
+        self._status.value = (f"Registered: array shift ({shift[0]:+.2f}, {shift[1]:+.2f}) px, "
+                              f"rotation {registration.rotation_deg:+.3f}°, lens offsets up "
+                              f"to {moves.max():.2f} px")
+        show_info(f"Self-registration saved to {self._run['folder']}: system.json, psfs.tif "
+                  "and registration.json.")
 
     def _on_calibrated(self, calibration: Calibration) -> None:
         """Apply the calibrated system, draw its chief rays and spots, show the report."""
@@ -437,7 +539,9 @@ class CalibrationWidget(Container):
             self._spot_frame.value = middle  # draws the spots
         self._report.value = report_text(calibration, run["nominal"])
         self._report.visible = True
-        self._save_calibration.enabled = True
+        self._save_calibration.enabled = self._show_psfs.enabled = True
+        if PSF_GRID in self._viewer.layers:  # an earlier calibration's
+            self.show_psf_grid()
         shift = calibration.array_shift
         self._progress.value = STEPS
         self._status.value = (f"Calibrated: array shift ({shift[0]:+.2f}, {shift[1]:+.2f}) px, "
@@ -484,6 +588,22 @@ class CalibrationWidget(Container):
             self._viewer.dims.set_point(0, float(self._raw.translate[0]
                                                  + frame * self._raw.scale[0]))
         layers.selection.active = layers[RAYS]
+
+    def show_psf_grid(self) -> napari.layers.Image | None:
+        """Add (or refresh) the calibrated PSF grid as the layer ``"calibrated PSFs"``:
+        one ``G·k`` square per lens, row by row, shown with gamma 0.5 (faint tails)."""
+        if self.calibration is None:
+            notify_error("No calibration yet.", "press 'Calibrate' first")
+            return None
+        grid = psf_montage(self.calibration.psfs)
+        layers = self._viewer.layers
+        if PSF_GRID in layers:
+            layers[PSF_GRID].data = grid
+            return layers[PSF_GRID]
+        layer = self._viewer.add_image(grid, name=PSF_GRID, colormap="magma", gamma=0.5)
+        if RAYS in layers:
+            layers.selection.active = layers[RAYS]
+        return layer
 
     def save_calibration(self) -> dict[str, Path] | None:
         """Write the calibration (``system.json``, its PSF stack, the report) to the chosen

@@ -14,7 +14,7 @@ from matplotlib.patches import Rectangle  # noqa: E402
 from ..config import SystemConfig  # noqa: E402
 from ..physics.geometry import sub_view_origins  # noqa: E402
 
-__all__ = ["calibration_figure", "montage", "overview_figure"]
+__all__ = ["calibration_figure", "montage", "overview_figure", "psf_montage"]
 
 
 def montage(views: np.ndarray) -> np.ndarray:
@@ -22,6 +22,29 @@ def montage(views: np.ndarray) -> np.ndarray:
     views = np.asarray(views)
     size = views.shape[-1]
     return views.reshape(3, 3, size, size).transpose(0, 2, 1, 3).reshape(3 * size, 3 * size)
+
+
+def psf_montage(psfs: np.ndarray) -> np.ndarray:
+    """Arrange a PSF grid ``(9, G·G, k, k)`` as one image, lens-major.
+
+    Lens 0's ``G × G`` field points (``k × k`` each) fill the top-left ``G·k`` square,
+    lens 1's the next one to the right, and so on.
+
+    Examples
+    --------
+    >>> psfs = np.zeros((9, 4, 5, 5))
+    >>> psfs[1, 2, 2, 2] = 1.0  # lens 1, field point (1, 0)
+    >>> image = psf_montage(psfs)
+    >>> image.shape, tuple(int(i) for i in np.argwhere(image)[0])
+    ((30, 30), (7, 12))
+    """
+    psfs = np.asarray(psfs)
+    grid = int(round(np.sqrt(psfs.shape[1])))
+    if psfs.ndim != 4 or psfs.shape[0] != 9 or grid * grid != psfs.shape[1]:
+        raise ValueError(f"psfs must be (9, G·G, k, k), got {psfs.shape}")
+    k = psfs.shape[-1]
+    tiles = psfs.reshape(3, 3, grid, grid, k, k).transpose(0, 2, 4, 1, 3, 5)
+    return tiles.reshape(3 * grid * k, 3 * grid * k)
 
 
 def overview_figure(
@@ -119,10 +142,8 @@ def calibration_figure(path: str | Path, calibration, frames: np.ndarray) -> Pat
     axes[1].legend(fontsize=6, ncol=3)
     axes[1].set_title("centroid residuals")
     psfs = np.asarray(cal.psfs)
-    grid = int(round(np.sqrt(psfs.shape[1])))
-    k = psfs.shape[-1]
-    tiles = psfs.reshape(3, 3, grid, grid, k, k).transpose(0, 2, 4, 1, 3, 5)
-    axes[2].imshow(np.sqrt(tiles.reshape(3 * grid * k, 3 * grid * k)), cmap="magma")
+    grid, k = int(round(np.sqrt(psfs.shape[1]))), psfs.shape[-1]
+    axes[2].imshow(np.sqrt(psf_montage(psfs)), cmap="magma")
     for line in range(1, 3):
         axes[2].axhline(line * grid * k - 0.5, color="white", lw=0.8)
         axes[2].axvline(line * grid * k - 0.5, color="white", lw=0.8)

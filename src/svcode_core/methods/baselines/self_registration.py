@@ -10,6 +10,7 @@ offsets and adds them up.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -52,6 +53,7 @@ def self_register(
     rank: int = 3,
     iterations: int = 10,
     reference: int = 4,
+    progress: Callable[[str, float], None] | None = None,
 ) -> tuple[Registration, SystemConfig, np.ndarray]:
     """Estimate the lens offsets of ``system`` from ``frame`` and move the system by them.
 
@@ -67,6 +69,9 @@ def self_register(
         LSV-ADMM's low-rank order and iterations for the intermediate reconstructions.
     reference : int
         Lens whose offset is 0.
+    progress : callable, optional
+        Called as ``progress(stage, fraction)`` before each round and at the end; an
+        exception it raises stops the registration (how a caller cancels).
 
     Returns
     -------
@@ -86,6 +91,8 @@ def self_register(
     offsets = np.zeros((N_LENSES, 2))
     moved, operator = system, CM2Operator.from_system(system, rank=rank)
     for round_ in range(rounds):
+        if progress is not None:
+            progress(f"round {round_ + 1} of {rounds}", round_ / rounds)
         solver = BaselineReconstructor("admm", moved, operator=operator, iterations=iterations)
         estimate = solver.reconstruct(frame).reconstruction
         found = register_views(frame, moved, estimate, operator, reference)
@@ -96,11 +103,16 @@ def self_register(
     shift, rotation, residuals = fit_array(offsets, system)
     registration = replace(found, offsets=offsets, shift=shift, rotation_deg=rotation,
                            residuals=residuals)
+    if progress is not None:
+        progress("done", 1.0)
     return registration, moved, psfs
 
 
 def register_recording(
-    frames: np.ndarray, system: SystemConfig, folder: str | Path
+    frames: np.ndarray,
+    system: SystemConfig,
+    folder: str | Path,
+    progress: Callable[[str, float], None] | None = None,
 ) -> tuple[SystemConfig, Registration]:
     """Self-register a recording and write the moved system into ``folder``.
 
@@ -114,6 +126,8 @@ def register_recording(
     folder : str or Path
         Receives ``system.json`` (its ``psf_model`` the moved PSFs ``psfs.tif``, beside
         it with their positions) and ``registration.json``.
+    progress : callable, optional
+        Passed to :func:`self_register`.
 
     Returns
     -------
@@ -130,7 +144,7 @@ def register_recording(
     from ...physics.psf_io import save_psfs
 
     frame = np.mean(np.asarray(frames[:REGISTRATION_FRAMES], dtype=np.float64), axis=0)
-    registration, moved, psfs = self_register(frame, system)
+    registration, moved, psfs = self_register(frame, system, progress=progress)
     misfit = np.linalg.norm(registration.residuals, axis=1)
     if misfit.max() > MAX_LENS_RESIDUAL_PX:
         lens = int(misfit.argmax())
