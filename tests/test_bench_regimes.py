@@ -39,6 +39,14 @@ def test_quick_bench_runs_every_regime(tiny_system, tmp_path, capsys):
     assert len(merged["rows"]) == len(report["rows"])
     assert merged["regimes"] == list(REGIMES)
     assert "[realistic]" in capsys.readouterr().out
+    # LSV-ADMM as a user runs it: only when asked for, merged beside the K = 3 rows
+    assert main(["bench", "--quick", "--system", str(system_json), "--methods",
+                 "admm-defaults", "--regimes", "realistic", "--merge", "--out", str(out)]) == 0
+    merged = json.loads((out / "regimes.json").read_text())
+    [row] = [r for r in merged["rows"] if r["method"] == "LSV-ADMM defaults"]
+    assert row["regime"] == "realistic" and row["settings"]["iterations"] == 200
+    assert row["settings"]["rank"] == report["simulator_rank"] and np.isfinite(row["psnr"])
+    assert len(merged["rows"]) == len(report["rows"]) + 1
 
 
 def test_merge_keys_rows_by_regime_and_method():

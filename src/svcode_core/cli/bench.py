@@ -36,9 +36,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--weights", type=Path, help="trained SV-CoDe model for its rows")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     parser.add_argument("--methods", nargs="*", choices=bench.METHOD_FAMILIES,
-                        default=list(bench.METHOD_FAMILIES),
-                        help="method families to run (default: all; none: only the "
-                        "--ablations rows, e.g. with --merge)")  # fmt: skip
+                        default=list(bench.DEFAULT_FAMILIES),
+                        help="method families to run (default: all but admm-defaults, "
+                        "LSV-ADMM as `svcode reconstruct` runs it, minutes per frame; none: "
+                        "only the --ablations rows, e.g. with --merge)")  # fmt: skip
     parser.add_argument("--ablations", nargs="+", type=Path, default=[], metavar="WEIGHTS",
                         help="further SV-CoDe models (e.g. ablations), one row each at the "
                         "default knob")  # fmt: skip
