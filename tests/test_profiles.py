@@ -1,4 +1,5 @@
-"""The bundled model has no bands or edge strips: row and column means follow the truth."""
+"""The bundled model has no bands or edge strips: row and column means follow the truth as
+closely as the instrument allows (LSV-ADMM on the same frame is the measure of that)."""
 
 from __future__ import annotations
 
@@ -8,40 +9,73 @@ import torch
 
 from napari_svcode._sample_data import SAMPLE_KINDS, SAMPLE_SEED
 from svcode_core import Reconstructor, SystemConfig
+from svcode_core.methods.baselines import BaselineReconstructor
 from svcode_core.phantoms import make_object
 from svcode_core.physics.simulate import Simulator
 
 BAND = 16  # pixels per band: profiles are compared band by band
-MAX_FACTOR = 1.5  # a band may be at most 1.5x brighter or darker than the frame's gain says
+#: a band may be this much brighter or darker than the frame's gain says ...
+MAX_FACTOR = 1.5
+#: ... or this much further off than LSV-ADMM's band: some bands are ambiguous for the
+#: instrument itself (object rows 144 px apart share sensor rows through adjacent lens
+#: rows), where LSV-ADMM is off by up to 3x on the samples
+MAX_FACTOR_BEYOND_ADMM = 1.25
+ADMM_ITERATIONS = 50
 
 
 def band_ratios(estimate: np.ndarray, truth: np.ndarray, axis: int) -> np.ndarray:
     """Per band of rows (axis 1 averaged) or columns (axis 0 averaged), the ratio of the
     estimate's mean to the truth's, divided by the whole frame's ratio; bands whose truth
-    holds less than a quarter of the average signal are left out (NaN)."""
+    holds less than a quarter of the average signal are left out (NaN).
+
+    Examples
+    --------
+    >>> truth = np.ones((32, 32))
+    >>> estimate = truth.copy()
+    >>> estimate[:, 16:] *= 3.0  # the right band three times too bright
+    >>> band_ratios(estimate, truth, axis=0).round(2).tolist()
+    [0.5, 1.5]
+    """
     est = estimate.mean(axis).reshape(-1, BAND).mean(1)
     ref = truth.mean(axis).reshape(-1, BAND).mean(1)
     gain = estimate.mean() / truth.mean()
     return np.where(ref >= 0.25 * truth.mean(), est / np.maximum(ref, 1e-12) / gain, np.nan)
 
 
+def allowed_log_error(reference_ratios: np.ndarray) -> np.ndarray:
+    """Per band, the largest ``|log ratio|`` accepted: ``log MAX_FACTOR``, or the reference
+    method's own error plus ``log MAX_FACTOR_BEYOND_ADMM`` where that is larger.
+
+    Examples
+    --------
+    >>> np.exp(allowed_log_error(np.array([1.0, 3.0, 0.5]))).round(3).tolist()
+    [1.5, 3.75, 2.5]
+    """
+    own = np.abs(np.log(reference_ratios)) + np.log(MAX_FACTOR_BEYOND_ADMM)
+    return np.maximum(np.log(MAX_FACTOR), np.nan_to_num(own, nan=0.0))
+
+
 @pytest.fixture(scope="module")
 def bundled():
-    """The ``cm2-mini`` simulator and the bundled model's reconstructor, built once."""
+    """The ``cm2-mini`` simulator, the bundled model's reconstructor and LSV-ADMM."""
     torch.set_num_threads(2)
     system = SystemConfig.preset("cm2-mini")
-    return system, Simulator(system), Reconstructor.pretrained(system)
+    admm = BaselineReconstructor("admm", system, rank=3, iterations=ADMM_ITERATIONS,
+                                 tolerance=0.0)
+    return system, Simulator(system), Reconstructor.pretrained(system), admm
 
 
-@pytest.mark.xfail(strict=True, reason="the bundled model (4 epochs, 160 matched frames) "
-                   "shows a bright band and a dark right edge; see its model card")
+@pytest.mark.xfail(strict=True, reason="the bundled model darkens the 16-px strips at the "
+                   "field's left and right edges that only six lenses see; see its model card")
 @pytest.mark.parametrize("kind", SAMPLE_KINDS)
 def test_row_and_column_profiles_follow_the_truth(kind, bundled):
-    system, simulator, reconstructor = bundled
+    system, simulator, reconstructor, admm = bundled
     truth = make_object(kind, system.sub_view_size, SAMPLE_SEED)
     frame = simulator.simulate(truth, seed=0).measurement
     estimate = reconstructor.reconstruct(frame).reconstruction
+    reference = admm.reconstruct(frame).reconstruction
     for axis in (0, 1):
         ratios = band_ratios(estimate, truth, axis)
-        ratios = ratios[np.isfinite(ratios)]
-        assert ratios.size and np.all(ratios <= MAX_FACTOR) and np.all(ratios >= 1 / MAX_FACTOR)
+        allowed = allowed_log_error(band_ratios(reference, truth, axis))
+        bad = np.flatnonzero(np.abs(np.log(ratios)) > allowed)  # NaN bands compare False
+        assert np.isfinite(ratios).any() and bad.size == 0, (axis, bad, ratios[bad])
