@@ -151,6 +151,11 @@ def add_method_arguments(parser: argparse.ArgumentParser) -> None:
         "--rank", type=int, metavar="K", help="low-rank order K of the forward model (all)"
     )
     group.add_argument(
+        "--memory-budget", type=float, metavar="GIB",
+        help="memory of the forward model's kept spectra and working chunks (all; default 1 "
+        "GiB; cm2-v2 at its K needs about 4 to run LSV-ADMM within 8 GiB)",
+    )
+    group.add_argument(
         "--iterations",
         type=int,
         help=f"admm: at most this many (default {mini.iterations}); rl: (default {RL_ITERATIONS})",
@@ -196,6 +201,10 @@ def baseline_options(args: argparse.Namespace) -> dict[str, Any]:
             continue
         if args.method not in MODEL_BASED_METHODS or name not in method(args.method).options:
             raise ValueError(f"{OPTION_FLAGS[name]} does not apply to --method {args.method}")
+        if name == "memory_budget":
+            if not value > 0:
+                raise ValueError(f"--memory-budget must be positive (GiB), got {value:g}")
+            value = int(value * 2**30)
         options[name] = value
     return options
 

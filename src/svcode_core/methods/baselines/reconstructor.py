@@ -41,11 +41,20 @@ _HALF = ("they are FFT-based; torch has no half-precision FFT on the CPU and onl
 
 @functools.lru_cache(maxsize=2)
 def build_operator(
-    system: SystemConfig, rank: int | None = None, device: str = "cpu", precision: str = "fp32"
+    system: SystemConfig,
+    rank: int | None = None,
+    device: str = "cpu",
+    precision: str = "fp32",
+    memory_budget: int | None = None,
 ) -> CM2Operator:
-    """The pupil-model operator of ``system`` (cached: the two most recent are kept)."""
+    """The operator of ``system`` (its PSF model; cached: the two most recent are kept).
+
+    ``memory_budget`` bounds the bytes of its kept spectra and working chunks
+    (:meth:`CM2Operator.from_system`; default 1 GiB).
+    """
     dtype = precision_dtype(precision, "admm", _HALF)
-    return CM2Operator.from_system(system, rank=rank, dtype=dtype, device=resolve_device(device))
+    return CM2Operator.from_system(system, rank=rank, dtype=dtype, device=resolve_device(device),
+                                   memory_budget=memory_budget)
 
 
 class BaselineReconstructor(FrameByFrame):
@@ -64,7 +73,8 @@ class BaselineReconstructor(FrameByFrame):
     **options
         The method's options (its ``options`` in :mod:`~svcode_core.methods.registry`;
         ``None`` means the default):
-        ``rank`` (low-rank order ``K`` of the operator built), ADMM ``iterations``,
+        ``rank`` (low-rank order ``K`` of the operator built), ``memory_budget`` (bytes
+        of the operator's spectra and working chunks, default 1 GiB), ADMM ``iterations``,
         ``tv_weight``, ``rho``, ``tolerance``, ``cg_iterations`` (defaults
         :func:`~svcode_core.methods.baselines.admm.settings_for`), Wiener ``balance``
         (1e-2) and ``boundary`` ("reflect"), RL ``iterations`` (30).
@@ -92,10 +102,11 @@ class BaselineReconstructor(FrameByFrame):
         if unknown:
             raise ValueError(f"{method}: unknown option(s) {unknown}; it accepts {list(accepted)}")
         rank = options.pop("rank", None)
+        budget = options.pop("memory_budget", None)
         if operator is None:
-            operator = build_operator(system, rank, str(device), precision)
-        elif rank is not None:
-            raise ValueError("pass either an operator or a rank, not both")
+            operator = build_operator(system, rank, str(device), precision, budget)
+        elif rank is not None or budget is not None:
+            raise ValueError("pass either an operator or a rank and memory budget, not both")
         elif operator.system != system:
             raise ValueError("the operator was built for another system configuration")
         self.method = method
