@@ -824,6 +824,49 @@ def test_mask_widget_shows_a_cached_mask(qtbot, tiny_system, model_file, make_na
                                     "size), block 0"
 
 
+def test_a_failure_inside_a_worker_is_one_notice(qtbot, monkeypatch, tmp_path, tiny_system,
+                                                model_file, make_napari_viewer, errors):
+    """The work raises in the worker thread: one notice of ours, none from napari's
+    task-status handler, and the widget stays usable."""
+    from napari.utils.notifications import notification_manager
+
+    from napari_svcode.widgets import simulate as simulate_module
+
+    raised = []
+    notification_manager.notification_ready.connect(raised.append)
+    viewer = make_napari_viewer()
+
+    model = _slow_model(monkeypatch, model_file, tiny_system, 0.0)
+
+    def fail(calls: int) -> None:
+        raise RuntimeError("CUDA out of memory (simulated)")
+
+    model.hook = fail
+    _, widget = _stack_in_widget(viewer, tiny_system, model_file, 2)
+    assert widget.start() is not None
+    _wait_done(qtbot, widget)
+    assert len(errors) == 1 and "CUDA out of memory (simulated)" in errors[0]
+    assert widget._run.enabled and widget.frames_done == 0
+
+    class Broken:
+        def simulate(self, *args, **kwargs):
+            raise MemoryError("cannot allocate 6.00 GiB (simulated)")
+
+    monkeypatch.setattr(simulate_module, "simulator", lambda system: Broken())
+    simulate = _dock(viewer, SimulateWidget)
+    viewer.add_image(np.ones((70, 90)), name="cells")
+    simulate._layer.value = viewer.layers["cells"]
+    simulate._system_choice.source.value = simulate._system_choice.FROM_FILE
+    simulate._system_choice.path.value = tiny_system.save(tmp_path / "system.json")
+    assert simulate.start() is not None
+    qtbot.waitUntil(lambda: simulate._run.enabled, timeout=20_000)
+    assert len(errors) == 2 and "6.00 GiB" in errors[1]
+    qtbot.wait(200)
+    assert not [n for n in raised if "Traceback" in str(n.message) or
+                getattr(n, "exception", None) is not None], raised
+    notification_manager.notification_ready.disconnect(raised.append)
+
+
 # ------------------------------------------------------------------- simulate
 def test_simulate_widget_makes_a_raw_frame(qtbot, tmp_path, tiny_system, make_napari_viewer):
     viewer = make_napari_viewer()

@@ -5,7 +5,6 @@ run in a worker thread."""
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -51,6 +50,7 @@ from .._layers import (
     notify_error,
     sub_view_boxes,
 )
+from .._workers import Failed, returning_failure
 from ._choosers import LayerOrFile, SystemChooser, image_layer_box, raw_frame_fit, scan_fit
 
 __all__ = ["CalibrationWidget"]
@@ -75,26 +75,6 @@ class _ProgressRelay(QObject):
 
 class _Cancelled(Exception):
     """Raised in the worker thread, at its next progress report, after *Cancel*."""
-
-
-@dataclass(frozen=True)
-class _Failed:
-    """What :func:`_returning_failure` gives back when the work raised ``error``."""
-
-    error: Exception
-
-
-def _returning_failure(work: Any, *args: Any, **kwargs: Any) -> Any:
-    """``work(*args, **kwargs)``, returning the exception it raises as :class:`_Failed`.
-
-    The worker then never errs: napari 0.9's task-status handler of an erring worker
-    raises a ``TypeError`` of its own (a second notice, with a traceback). The exception
-    keeps its traceback for the log.
-    """
-    try:
-        return work(*args, **kwargs)
-    except Exception as err:  # noqa: BLE001 - the thread boundary: shown as one notice
-        return _Failed(err)
 
 
 class CalibrationWidget(Container):
@@ -454,7 +434,7 @@ class CalibrationWidget(Container):
                 raise _Cancelled
             relay.progress.emit(stage, fraction)
 
-        worker = thread_worker(_returning_failure, start_thread=False)(
+        worker = thread_worker(returning_failure, start_thread=False)(
             work, *args, progress=progress, **kwargs)
         worker.returned.connect(self._on_returned)
         worker.finished.connect(self._on_finished)
@@ -484,7 +464,7 @@ class CalibrationWidget(Container):
         return "Calibrating" if self._run.get("work") is calibrate else "Self-registering"
 
     def _on_returned(self, result: Any) -> None:
-        if isinstance(result, _Failed):
+        if isinstance(result, Failed):
             self._on_error(result.error)
         elif self._run["work"] is calibrate:
             self._on_calibrated(result)

@@ -7,13 +7,14 @@ from pathlib import Path
 import napari
 import numpy as np
 from magicgui.widgets import ComboBox, Container, PushButton, SpinBox
-from napari.qt.threading import FunctionWorker, thread_worker
+from napari.qt.threading import FunctionWorker
 from napari.utils.notifications import show_info
 
 from svcode_core.config import SystemConfig
 
 from .._layers import layer_metadata, notify_error, object_translate
 from .._resources import cached_model
+from .._workers import function_worker
 from ._choosers import ModelChooser
 
 __all__ = ["MaskWidget", "block_help", "layer_help", "stage_help"]
@@ -158,8 +159,8 @@ class MaskWidget(Container):
                                          system.sub_view_size, lens=lens,
                                          channels=key[-1]).cpu().numpy()[0]
 
-        worker = thread_worker(compute, start_thread=False)()
-        worker.returned.connect(lambda mask: self._store(key, mask, system))
+        worker = function_worker(compute, lambda mask: self._store(key, mask, system),
+                                 "reload the model, or choose another layer")
         self.worker = worker
         worker.start()
         return worker

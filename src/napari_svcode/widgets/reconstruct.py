@@ -46,6 +46,7 @@ from .._layers import (
     object_translate,
 )
 from .._resources import available_devices, cached_model
+from .._workers import Failed, yielding_failure
 from ._choosers import ground_truth_fit, image_layer_box, raw_frame_fit
 from ._methods import MethodPanel
 
@@ -330,9 +331,9 @@ class ReconstructWidget(Container):
             frames, first = frames[first:first + 1], 0
         views = self._views.value and not compare
         self._prepare(layer, system, jobs, frames.shape[0], first, truth, views)
-        worker = thread_worker(run_jobs, start_thread=False)(jobs, frames, first, views)
+        worker = thread_worker(yielding_failure, start_thread=False)(
+            run_jobs, jobs, frames, first, views)
         worker.yielded.connect(self._on_yielded)
-        worker.errored.connect(self._on_errored)
         worker.aborted.connect(self._on_aborted)
         worker.finished.connect(self._on_finished)
         self.worker = worker
@@ -386,8 +387,11 @@ class ReconstructWidget(Container):
             self._progress.value = value
         self._status.value = text
 
-    def _on_yielded(self, item: Started | FrameProgress | FrameDone) -> None:
+    def _on_yielded(self, item: Started | FrameProgress | FrameDone | Failed) -> None:
         # Only widget and layer updates here: never process events from a worker callback.
+        if isinstance(item, Failed):
+            self._on_errored(item.error)
+            return
         state = self._state
         job = state["jobs"][getattr(item, "job", state.get("job", 0))]
         title = METHOD_TITLES[job.method]

@@ -7,7 +7,7 @@ from pathlib import Path
 import napari
 import numpy as np
 from magicgui.widgets import CheckBox, Container, PushButton, SpinBox
-from napari.qt.threading import FunctionWorker, thread_worker
+from napari.qt.threading import FunctionWorker
 from napari.utils.notifications import show_warning
 
 from svcode_core.config import ConfigError, SystemConfig
@@ -17,6 +17,7 @@ from svcode_core.physics.simulate import Simulation
 
 from .._layers import current_index, layer_metadata, notify_error
 from .._resources import simulator
+from .._workers import function_worker
 from ._choosers import SystemChooser, image_layer_box
 
 __all__ = ["SimulateWidget"]
@@ -74,8 +75,8 @@ class SimulateWidget(Container):
             return simulator(system).simulate(obj, seed=self._seed.value,
                                               noise=self._noise.value)
 
-        worker = thread_worker(run, start_thread=False)()
-        worker.returned.connect(lambda scene: self._add(layer.name, scene, system))
+        worker = function_worker(run, lambda scene: self._add(layer.name, scene, system),
+                                 "choose a smaller system, or free memory and try again")
         self.worker = worker
         self._run.enabled = False
         worker.finished.connect(lambda: setattr(self._run, "enabled", True))
