@@ -65,8 +65,9 @@ def bundled():
     return system, Simulator(system), Reconstructor.pretrained(system), admm
 
 
-@pytest.mark.xfail(strict=True, reason="the bundled model darkens the 16-px strips at the "
-                   "field's left and right edges that only six lenses see; see its model card")
+@pytest.mark.xfail(strict=True, reason="the bundled model darkens regions that only six lenses "
+                   "see: the 16-px column strips at the field's left and right edges (every "
+                   "sample), the bottom rows (vessels); see its model card")
 @pytest.mark.parametrize("kind", SAMPLE_KINDS)
 def test_row_and_column_profiles_follow_the_truth(kind, bundled):
     system, simulator, reconstructor, admm = bundled
@@ -74,8 +75,12 @@ def test_row_and_column_profiles_follow_the_truth(kind, bundled):
     frame = simulator.simulate(truth, seed=0).measurement
     estimate = reconstructor.reconstruct(frame).reconstruction
     reference = admm.reconstruct(frame).reconstruction
-    for axis in (0, 1):
+    off = {}
+    for axis, name in ((1, "row bands"), (0, "column bands")):
         ratios = band_ratios(estimate, truth, axis)
+        assert np.isfinite(ratios).any()
         allowed = allowed_log_error(band_ratios(reference, truth, axis))
         bad = np.flatnonzero(np.abs(np.log(ratios)) > allowed)  # NaN bands compare False
-        assert np.isfinite(ratios).any() and bad.size == 0, (axis, bad, ratios[bad])
+        if bad.size:
+            off[name] = {int(band): round(float(ratios[band]), 2) for band in bad}
+    assert not off, off  # e.g. {'column bands': {0: 0.29, 23: 0.23}}: the edge strips

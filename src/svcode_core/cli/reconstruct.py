@@ -93,7 +93,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--mask-cache", type=int, default=1024, metavar="MIB",
                         help="memory for frozen coordinate masks, 0 to recompute them "
-                        "(default: 1024; the bundled cm2-mini model needs 640)")
+                        "(default: 1024; for models with exact per-pixel masks: a cm2-mini "
+                        "one needs 640, models with masks on a lattice, like the bundled one, "
+                        "none)")
     parser.add_argument(
         "--workers",
         type=int,
