@@ -190,19 +190,32 @@ class CalibrationWidget(Container):
 
     def show_sub_views(self) -> None:
         """Apply the chosen system to the raw layer and draw its chief rays and one box."""
+        chosen = self._raw_layer_and_system(keep_current=False)
+        if chosen is not None:
+            self._raw = chosen[0]
+            self._apply(chosen[1])
+            self._draw()
+
+    def _raw_layer_and_system(
+        self, keep_current: bool
+    ) -> tuple[napari.layers.Image, SystemConfig] | None:
+        """The raw layer and its system (the chosen one, or with ``keep_current`` the one
+        already applied to that layer); ``None`` after a notice if either is missing or
+        they do not fit."""
         layer = self._layer.value
         if layer is None:
             notify_error("No raw image layer.", "open a raw CM² frame first (File ▸ Open)")
-            return
+            return None
+        current = self.system if keep_current and self._raw is layer else None
         try:
-            system = self._system_choice.system(layer.metadata)
+            system = current or self._system_choice.system(layer.metadata)
         except (ConfigError, FileNotFoundError) as err:
             notify_error(err, "fix the system.json, or choose a preset")
-            return
+            return None
         if system is None:
             notify_error(f"Layer {layer.name!r} has no system configuration.",
                          "choose a preset or a system.json file above")
-            return
+            return None
         if tuple(layer.data.shape[-2:]) != tuple(system.sensor_shape):
             notify_error(
                 f"Layer {layer.name!r} is {layer.data.shape[-2]}×{layer.data.shape[-1]} "
@@ -210,10 +223,8 @@ class CalibrationWidget(Container):
                 f"{system.sensor_shape[1]} sensor.",
                 "choose the system of the instrument that recorded this frame",
             )
-            return
-        self._raw = layer
-        self._apply(system)
-        self._draw()
+            return None
+        return layer, system
 
     def _apply(self, system: SystemConfig) -> None:
         self.system = system
@@ -395,28 +406,11 @@ class CalibrationWidget(Container):
 
         Returns ``None`` without running when a check fails.
         """
-        layer = self._layer.value
-        if layer is None:
-            notify_error("No raw image layer.", "open a raw CM² frame first (File ▸ Open)")
+        chosen = self._raw_layer_and_system(keep_current=True)
+        if chosen is None:
             return None
-        system = self.system if self._raw is layer and self.system is not None else None
-        try:
-            system = system or self._system_choice.system(layer.metadata)
-        except (ConfigError, FileNotFoundError) as err:
-            notify_error(err, "fix the system.json, or choose a preset")
-            return None
-        if system is None:
-            notify_error(f"Layer {layer.name!r} has no system configuration.",
-                         "choose a preset or a system.json file above")
-            return None
+        layer, system = chosen
         frames = np.asarray(layer.data[:REGISTRATION_FRAMES] if layer.ndim == 3 else layer.data)
-        if tuple(frames.shape[-2:]) != tuple(system.sensor_shape):
-            notify_error(
-                f"Layer {layer.name!r} is {frames.shape[-2]}×{frames.shape[-1]} pixels but "
-                f"system {system.name!r} has a {system.sensor_shape[0]}×"
-                f"{system.sensor_shape[1]} sensor.",
-                "choose the system of the instrument that recorded this frame")
-            return None
         folder = Path(self._register_folder.value)
         run = {"layer": layer, "nominal": system, "folder": folder}
         return self._start(register_recording, (frames.reshape(-1, *frames.shape[-2:]),
