@@ -24,6 +24,16 @@ def montage(views: np.ndarray) -> np.ndarray:
     return views.reshape(3, 3, size, size).transpose(0, 2, 1, 3).reshape(3 * size, 3 * size)
 
 
+def _save(fig: plt.Figure, path: str | Path, dpi: int) -> Path:
+    """Lay out ``fig``, write it to ``path`` (creating its folder) and close it."""
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
+
+
 def psf_montage(psfs: np.ndarray) -> np.ndarray:
     """Arrange a PSF grid ``(9, G·G, k, k)`` as one image, lens-major.
 
@@ -99,12 +109,7 @@ def overview_figure(
         ax.set_yticks([])
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path, dpi=110)
 
 
 def calibration_figure(path: str | Path, calibration, frames: np.ndarray) -> Path:
@@ -150,9 +155,4 @@ def calibration_figure(path: str | Path, calibration, frames: np.ndarray) -> Pat
     axes[2].set_xticks([])
     axes[2].set_yticks([])
     axes[2].set_title(f"PSF grid, lens-major (sqrt), K = {max(cal.ranks)}")
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return _save(fig, path, dpi=100)
