@@ -19,6 +19,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from ..config import SystemConfig, available_presets, load_system
+from ..run.allocator import reuse_freed_memory
 
 COMMANDS = ("simulate", "reconstruct", "demo", "dataset", "train", "bench", "calibrate")
 
@@ -87,9 +88,11 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``svcode`` console script; returns the exit status.
 
     User errors (:class:`ValueError`, :class:`OSError`) become one line on stderr and exit
-    status 2, an interruption exits with 130; with ``--debug`` both raise.
+    status 2, an interruption exits with 130; with ``--debug`` both raise. The process
+    keeps freed memory for reuse (:func:`~svcode_core.run.allocator.reuse_freed_memory`).
     """
     args = build_parser().parse_args(argv)
+    reuse_freed_memory()
     debug = getattr(args, "debug", False)
     with warnings.catch_warnings():
         warnings.showwarning = _one_line_warnings(args.command)
