@@ -6,7 +6,8 @@ Two scales:
 
 Variants: the plain NAFNet of the same widths (``coord_gate=False``); SV-CoDe with its
 masks on a lattice (``lattice``, the presets' default ``mask_spacing``: MLPs on coarse
-nodes, bilinear interpolation, no cache); and SV-CoDe with exact per-pixel masks
+nodes, bilinear interpolation, no cache; ``lattice-cached``: each tile's interpolated
+masks kept in the 1 GiB cache, warm); and SV-CoDe with exact per-pixel masks
 (``mask_spacing = 0``, as models written before the lattice) computed on every call
 (``uncached``) or with the mask cache warm (``cached``: the tile grid was seen once
 before, as for every frame after the first of a stack) under the default 1 GiB budget.
@@ -21,9 +22,11 @@ once with ``torch.utils.flop_counter`` (convolutions and matrix products: elemen
 work such as the masks themselves is not counted), and GFLOP/s is that count over the
 wall latency.
 
-Peak memory: every variant runs in a fresh process; the rise of the process's peak resident
-set size over the timed calls is reported (it includes the mask cache), read by
-:class:`svcode_core.evaluation.footprint.PeakMemory` (Linux; empty elsewhere).
+Every process keeps freed memory for reuse, as the ``svcode`` command does
+(:mod:`svcode_core.run.allocator`). Peak memory: every variant runs in a fresh process;
+the rise of the process's peak resident set size over the timed calls is reported (it
+includes the mask cache), read by :class:`svcode_core.evaluation.footprint.PeakMemory`
+(Linux; empty elsewhere).
 ``tracemalloc`` cannot see torch's allocations, hence RSS. Results go to
 bench/results/network.json and network.md.
 
@@ -46,6 +49,7 @@ from torch.utils.flop_counter import FlopCounterMode
 from svcode_core.config import DEFAULT_MEMORY_BUDGET
 from svcode_core.evaluation.footprint import PeakMemory
 from svcode_core.network import ModelConfig, SVCoDe
+from svcode_core.run.allocator import reuse_freed_memory
 
 RESULTS = Path(__file__).parent / "results"
 SCALES = {
@@ -53,18 +57,20 @@ SCALES = {
     "training": {"config": "mini", "tile": 96, "batch": 8, "sub_view": 384, "stride": 48},
     "paper": {"config": "reference", "tile": 480, "batch": 1, "sub_view": 2400, "stride": 240},
 }
-VARIANTS = ("plain", "lattice", "uncached", "cached", "cached-full")
-SCALE_VARIANTS = {"cm2-mini": VARIANTS[:4], "training": VARIANTS[:3], "paper": VARIANTS}
+VARIANTS = ("plain", "lattice", "lattice-cached", "uncached", "cached", "cached-full")
+SCALE_VARIANTS = {"cm2-mini": VARIANTS[:5], "training": ("plain", "lattice", "uncached"),
+                  "paper": VARIANTS}
 
 
 def measure(scale: str, variant: str, iters: int, threads: int) -> dict:
     """One variant in this process: latency (median, s) and peak memory (MiB)."""
     torch.set_num_threads(threads)
+    reuse_freed_memory()  # as the svcode command does
     spec = SCALES[scale]
     config = getattr(ModelConfig, spec["config"])()
     if variant == "plain":
         config = config.replace(coord_gate=False)
-    elif variant != "lattice":
+    elif not variant.startswith("lattice"):
         config = config.replace(mask_spacing=0)
     torch.manual_seed(0)
     model = SVCoDe(config).eval()
@@ -74,7 +80,7 @@ def measure(scale: str, variant: str, iters: int, threads: int) -> dict:
         return _training_step(model, views, iters, spec, variant, threads)
     origins = [[(i // 2) * spec["stride"], (i % 2) * spec["stride"]] for i in range(batch)]
     sub_view = tile if variant == "cached-full" else spec["sub_view"]
-    if variant.startswith("cached"):
+    if variant in ("lattice-cached", "cached", "cached-full"):
         model.cache_masks(max_bytes=max(DEFAULT_MEMORY_BUDGET, model.mask_field_bytes(sub_view))
                           if variant == "cached-full" else DEFAULT_MEMORY_BUDGET)
     times, cpu_times = [], []
@@ -88,7 +94,8 @@ def measure(scale: str, variant: str, iters: int, threads: int) -> dict:
     with FlopCounterMode(display=False) as counter, torch.inference_mode():
         model(views, origins, sub_view)
     info = model.mask_cache_info()
-    field = model.mask_field_bytes(spec["sub_view"]) if variant not in ("plain", "lattice") else 0
+    field = 0 if variant == "plain" or variant.startswith("lattice") else model.mask_field_bytes(
+        spec["sub_view"])
     return {
         "scale": scale,
         "variant": variant,
@@ -190,8 +197,11 @@ def _markdown(rows: list[dict]) -> str:
         "memory above the level before the first call, fresh process per row (includes the "
         "mask cache). Cache budget 1 GiB; field: cache needed for a whole S × S sub-view "
         "(float32). `cached-full`: the tile is the whole sub-view (S = 480) so every mask is "
-        "cached. `lattice`: masks on the preset's lattice (`mask_spacing`), no cache. "
-        "Target: SV-CoDe ≤ 1.15 × plain NAFNet.",
+        "cached. `lattice`: masks on the preset's lattice (`mask_spacing`), no cache; "
+        "`lattice-cached`: the same with each tile's interpolated masks kept (1 GiB), as "
+        "for every frame after the first of a recording. "
+        "Every process keeps freed memory for reuse, as the `svcode` command does "
+        "(`svcode_core.run.allocator`). Target: SV-CoDe ≤ 1.15 × plain NAFNet.",
         "",
         "| scale | tile × batch | S | threads | variant | params (M) | MLP params (M) "
         "| latency (ms) | CPU (ms) | × plain | GFLOP | GFLOP/s | peak (MiB) | cache (MiB) "

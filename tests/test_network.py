@@ -202,3 +202,27 @@ def test_half_model_runs(two_level_model_config):
     assert half.dtype == torch.float16 and torch.isfinite(half).all()
     assert (reference - half.float()).abs().max() < 1e-2
     assert math.isfinite(float(half.sum()))
+
+
+# ------------------------------------------------------------------ layer norm
+@pytest.mark.parametrize("layout", [torch.contiguous_format, torch.channels_last])
+def test_layer_norm_matches_the_per_pixel_formula_in_float64(layout):
+    from svcode_core.network.blocks import LayerNorm2d
+
+    torch.manual_seed(0)
+    norm = LayerNorm2d(6)
+    with torch.no_grad():
+        norm.weight.uniform_(0.5, 1.5)
+        norm.bias.normal_()
+    x = (3 * torch.randn(2, 6, 5, 7) + 1).contiguous(memory_format=layout).requires_grad_()
+    out = norm(x)
+    a = x.detach().double().numpy()
+    mean = a.mean(1, keepdims=True)
+    var = ((a - mean) ** 2).mean(1, keepdims=True)  # biased, as in NAFNet
+    expected = (a - mean) / np.sqrt(var + norm.eps) * norm.weight.detach().double().numpy()[
+        None, :, None, None] + norm.bias.detach().double().numpy()[None, :, None, None]
+    # normalised values are O(1): a few float32 roundings of each
+    np.testing.assert_allclose(out.detach().double().numpy(), expected, rtol=0,
+                               atol=16 * np.finfo(np.float32).eps * np.abs(expected).max())
+    out.square().sum().backward()
+    assert x.grad is not None and torch.isfinite(x.grad).all()

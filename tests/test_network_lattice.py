@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+import torch.nn.functional as F
 
 from svcode_core.network import ModelConfig, SVCoDe
 from svcode_core.network.encoding import positional_encoding
@@ -70,8 +71,10 @@ def test_mask_spacing_for_respects_the_tolerance():
     assert encoding_error_bound(ModelConfig.reference().mask_spacing, 2400, 4, "code") <= 1e-2
 
 
-def test_aligned_and_general_interpolation_agree():
-    """The up-sampling route and the dense interpolation matrices give the same masks."""
+@pytest.mark.parametrize("lenses", [1, 9])
+def test_both_interpolation_routes_match_bilinear_upsampling(lenses):
+    """Either route (up-sampling for one aligned lens, interpolation matrices otherwise)
+    gives each tile's crop of torch's bilinear up-sampling of its node masks."""
     torch.manual_seed(0)
     origins = torch.tensor([0, 16, 40])
     for level in (0, 1, 2):
@@ -79,12 +82,17 @@ def test_aligned_and_general_interpolation_agree():
         _, rows = lattice_axis(origins, length, level, 8, S)
         _, cols = lattice_axis(origins.flip(0), length, level, 8, S)
         assert rows.upsample is not None
-        masks = torch.rand(3, 2, 5, rows.nodes, cols.nodes)
-        fast = interpolate(masks, rows, cols)
-        general = interpolate(masks, LatticeAxis(rows.position, rows.nodes, None, ()),
-                              LatticeAxis(cols.position, cols.nodes, None, ()))  # fmt: skip
-        for a, b in zip(fast, general, strict=True):
-            torch.testing.assert_close(a, b, rtol=0, atol=4 * torch.finfo(torch.float32).eps)
+        masks = torch.rand(3, lenses, 5, rows.nodes, cols.nodes)
+        general = (LatticeAxis(rows.position, rows.nodes, None, ()),
+                   LatticeAxis(cols.position, cols.nodes, None, ()))  # fmt: skip
+        size = [(axis.nodes - 1) * axis.upsample + 1 for axis in (rows, cols)]
+        for route in (interpolate(masks, rows, cols), interpolate(masks, *general)):
+            for t, tile in enumerate(route):
+                up = F.interpolate(masks[t], size=size, mode="bilinear", align_corners=True)
+                r, c = rows.crops[t], cols.crops[t]
+                expected = up[:, :, r : r + length, c : c + length]
+                torch.testing.assert_close(tile, expected, rtol=0,
+                                           atol=4 * torch.finfo(torch.float32).eps)
 
 
 def test_nodes_are_reproduced_exactly_and_spacing_one_is_exact():
@@ -146,18 +154,6 @@ def test_gradients_reach_the_mask_mlps_through_the_interpolation():
     assert sum(g.abs().sum().item() for g in grads) > 0
 
 
-def test_lattice_model_needs_no_cache_and_ignores_it():
-    model = _model(TINY)
-    views = torch.rand(2, 9, 32, 32)
-    with torch.no_grad():
-        plain = model(views, [[0, 0], [32, 32]], S)
-        with model.cache_masks(max_bytes=2**26):
-            cached = model(views, [[0, 0], [32, 32]], S)
-            assert model.mask_cache_info()["bytes"] == 0
-    for a, b in zip(plain, cached, strict=True):
-        torch.testing.assert_close(a, b, rtol=0, atol=0)
-
-
 def test_old_model_files_load_exact(tmp_path, tiny_system):
     """A configuration without ``mask_spacing`` (written before the lattice) is exact."""
     data = TINY.to_dict()
@@ -166,3 +162,24 @@ def test_old_model_files_load_exact(tmp_path, tiny_system):
     with pytest.raises(Exception, match="mask_spacing"):
         TINY.replace(mask_spacing=-1)
     assert math.isclose(encoding_error_bound(0, 384, 4, "code"), 0.0)
+
+
+def test_cached_lattice_masks_give_the_same_output_and_are_read_on_the_next_frame():
+    model = _model(TINY)
+    views = torch.rand(3, 9, 32, 32)
+    origins = [[0, 0], [24, 40], [0, 0]]  # two tiles share a place
+    with torch.inference_mode():
+        plain = model(views, origins, S)
+        for budget in (2**30, 1):  # all kept / nothing fits: the masks are computed
+            with model.cache_masks(max_bytes=budget):
+                first = model(views, origins, S)
+                second = model(views, origins, S)
+                info = model.mask_cache_info()
+            for a, b, c in zip(plain, first, second, strict=True):
+                torch.testing.assert_close(b, a, rtol=0, atol=0)
+                torch.testing.assert_close(c, a, rtol=0, atol=0)
+            if budget == 1:
+                assert info["entries"] == 0 and info["bytes"] == 0
+            else:  # every block and level of both tile places, read on the second call
+                assert info["entries"] > 0 and info["hits"] == info["entries"]
+                assert info["bytes"] <= budget

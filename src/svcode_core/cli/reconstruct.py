@@ -92,10 +92,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--no-skip", action="store_true", help="run every tile, also those without signal"
     )
     parser.add_argument("--mask-cache", type=int, default=1024, metavar="MIB",
-                        help="memory for frozen coordinate masks, 0 to recompute them "
-                        "(default: 1024; for models with exact per-pixel masks: a cm2-mini "
-                        "one needs 640, models with masks on a lattice, like the bundled one, "
-                        "none)")
+                        help="memory for frozen coordinate masks, kept for the next tile "
+                        "and frame; 0 to recompute them (default: 1024; the bundled cm2-mini "
+                        "model needs 640 for its whole-sub-view tile)")
     parser.add_argument(
         "--workers",
         type=int,

@@ -157,7 +157,9 @@ class Reconstructor(BaseReconstructor):
         tile and frame; 0 recomputes them for each batch. The default (1 GiB) holds all of
         the bundled ``cm2-mini`` model's masks (640 MiB, :meth:`SVCoDe.mask_field_bytes`);
         a smaller budget caches part of them (256 MiB: about 4× slower on ``cm2-mini``).
-        Models whose masks sit on a lattice (``ModelConfig.mask_spacing``) need no cache.
+        For models whose masks sit on a lattice (``ModelConfig.mask_spacing``, the
+        bundled one) it keeps each tile's interpolated masks instead, read by every frame
+        after the first.
     tile_memory_bytes : int
         Working-memory budget of one batch of tiles for the default tiling.
 

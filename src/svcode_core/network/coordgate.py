@@ -236,6 +236,10 @@ class CoordGrid:
     lattice : tuple of LatticeAxis or None
         ``(rows, cols)``: the encodings are lattice nodes, interpolated to the tile pixels
         (:mod:`.lattice`).
+    places : tuple or None
+        With ``lattice`` and ``cache``: per distinct origin, a hashable key of where its
+        tile lies (origin, level, size, sub-view), under which its interpolated masks
+        are cached.
     """
 
     enc_row: torch.Tensor
@@ -244,6 +248,7 @@ class CoordGrid:
     field: MaskField | None = None
     tiles: torch.Tensor | None = None
     lattice: tuple[LatticeAxis, LatticeAxis] | None = None
+    places: tuple[Hashable, ...] | None = None
 
     @property
     def batch(self) -> int:
@@ -263,6 +268,36 @@ class CoordGrid:
             per_origin = list(zip(*masks, strict=True))
         else:
             per_origin = list(zip(*(interpolate(m, *self.lattice) for m in masks), strict=True))
+        return self._per_tile(per_origin)
+
+    def cached_lattice_masks(
+        self, name: Hashable, compute: MaskFunction, dtype: torch.dtype
+    ) -> list[Masks]:
+        """Per tile, its interpolated lattice masks ``(lenses, C, h, w)`` in ``dtype``:
+        from the cache, or computed for the origins it lacks and stored while they fit.
+
+        A recording's frames run the same tiles, so from the second frame on the masks are
+        read, not interpolated (the interpolation is most of what lattice masks cost).
+        """
+        keys = [(name, place, dtype) for place in self.places]
+        per_origin = [self.cache.get(key) for key in keys]
+        missing = [u for u, masks in enumerate(per_origin) if masks is None]
+        if missing:
+            index = torch.tensor(missing, device=self.enc_row.device)
+            nodes = compute(self.enc_row[index], self.enc_col[index])
+            rows, cols = (axis.select(missing) for axis in self.lattice)
+            computed = zip(*(interpolate(m, rows, cols) for m in nodes), strict=True)
+            for u, masks in zip(missing, computed, strict=True):
+                masks = tuple(m.to(dtype) for m in masks)
+                if self.cache.reserve(sum(m.nbytes for m in masks)):
+                    # stored on their own: a crop would keep its whole up-sampled grid
+                    masks = tuple(m.clone(memory_format=torch.channels_last) for m in masks)
+                    self.cache.put(keys[u], masks)
+                per_origin[u] = masks
+        return self._per_tile(per_origin)
+
+    def _per_tile(self, per_origin: list[Masks]) -> list[Masks]:
+        """Masks per distinct origin repeated for the tiles that share it."""
         if self.tiles is None:
             return per_origin
         return [per_origin[u] for u in self.tiles.tolist()]

@@ -223,7 +223,11 @@ class _MaskedModel(nn.Module):
         tile of a grid whose origins are multiples of the model stride); other tiles get
         theirs computed. A whole sub-view needs :meth:`mask_field_bytes`; with less,
         the masks that fit stay cached and the others are computed per call (see
-        :class:`~.coordgate.MaskCache`). Entries are dropped when the weights they
+        :class:`~.coordgate.MaskCache`). For models with masks on a lattice
+        (``mask_spacing > 0``) it keeps instead each tile's interpolated masks under the
+        tile's place (origin, shape, sub-view size): the frames of a recording run the same
+        tiles, and reading the masks costs less than interpolating them again. Entries are
+        dropped when the weights they
         depend on change (in-place updates, loading, dtype or device moves). Leaving
         the ``with`` block restores the previous cache.
 
@@ -300,21 +304,22 @@ class _MaskedModel(nn.Module):
         if not self._gates:
             return [None] * (levels + 1)
         spacing = self.model_config.mask_spacing
-        cache = self._mask_cache if spacing == 0 else None  # lattice masks need no cache
+        cache = self._mask_cache if not torch.is_grad_enabled() else None
         fields: list[MaskField | None] = [None] * (levels + 1)
         if cache is not None:
             cache.check_weights(self._weights_key())
             cache.new_call()
-            fields = self._fields(origins, sub_view_size, shape, levels)
+            if not spacing:
+                fields = self._fields(origins, sub_view_size, shape, levels)
         tiles = None
-        if cache is None or torch.is_grad_enabled():
+        if cache is None or spacing:
             distinct, tiles = torch.unique(origins, dim=0, return_inverse=True)
             if len(distinct) == len(origins):
                 tiles = None
             else:  # tiles at one origin share their masks
                 origins = distinct
         if spacing:
-            return [self._lattice_grid(origins, sub_view_size, shape, level, tiles)
+            return [self._lattice_grid(origins, sub_view_size, shape, level, tiles, cache)
                     for level in range(levels + 1)]  # fmt: skip
         rows = level_coordinates(origins[:, 0], shape[0], sub_view_size, levels)
         cols = level_coordinates(origins[:, 1], shape[1], sub_view_size, levels)
@@ -330,16 +335,22 @@ class _MaskedModel(nn.Module):
         shape: tuple[int, int],
         level: int,
         tiles: torch.Tensor | None,
+        cache: MaskCache | None,
     ) -> CoordGrid:
-        """The lattice nodes of every tile at one level (see :mod:`.lattice`)."""
+        """The lattice nodes of every tile at one level (see :mod:`.lattice`); with a
+        cache, each tile's interpolated masks are kept under its place."""
         spacing = self.model_config.mask_spacing
         axes = [
             lattice_axis(origins[:, axis], shape[axis] // 2**level, level, spacing, sub_view_size)
             for axis in (0, 1)
         ]
         (rows, row_axis), (cols, col_axis) = axes
-        return CoordGrid(self._encode(rows), self._encode(cols), tiles=tiles,
-                         lattice=(row_axis, col_axis))  # fmt: skip
+        places = None
+        if cache is not None:
+            places = tuple((sub_view_size, level, *shape, *origin)
+                           for origin in origins.tolist())  # fmt: skip
+        return CoordGrid(self._encode(rows), self._encode(cols), cache=cache, tiles=tiles,
+                         lattice=(row_axis, col_axis), places=places)  # fmt: skip
 
     def _encode(self, coords: torch.Tensor) -> torch.Tensor:
         config, param = self.model_config, next(self.parameters())
