@@ -9,7 +9,6 @@ from pathlib import Path
 import numpy as np
 
 from ..io import read_tiff
-from ..physics.calibration import calibrate, read_positions, save_calibration
 from . import add_system_arguments, chosen_system
 
 
@@ -47,6 +46,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Calibrate and write the files; print a summary."""
+    # scipy.stats and scikit-image's feature module: only when calibrating
+    from ..physics.calibration import calibrate, read_positions, save_calibration
+
     nominal = chosen_system(args)
     if nominal is None:
         raise ValueError("give the nominal system: --preset NAME or --system FILE.json")

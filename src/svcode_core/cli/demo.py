@@ -9,7 +9,6 @@ from pathlib import Path
 import numpy as np
 
 from ..config import available_presets, load_system
-from ..evaluation.figures import overview_figure
 from ..evaluation.metrics import image_quality
 from ..io import write_tiff
 from ..methods.svcode import Reconstructor
@@ -41,6 +40,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Simulate, reconstruct, score, save the files and the picture."""
+    from ..evaluation.figures import overview_figure  # matplotlib: only when drawing
+
     system = load_system(args.preset)
     if args.weights is not None:
         rec = Reconstructor.from_weights(args.weights, system, device=args.device)

@@ -260,18 +260,20 @@ class CoordGrid:
         """Whether masks come from the cache (a cache is set and no gradient is needed)."""
         return self.cache is not None and not torch.is_grad_enabled()
 
-    def tile_masks(self, masks: Masks) -> list[Masks]:
+    def tile_masks(self, masks: Masks, channels_last: bool = True) -> list[Masks]:
         """Per tile, its masks ``(lenses, C, h, w)`` from masks ``(U, lenses, C, ., .)``
         computed at ``enc_row`` and ``enc_col``: interpolated from the lattice nodes when
-        ``lattice`` is set, and repeated for tiles that share an origin."""
+        ``lattice`` is set (in the features' layout), and repeated for tiles that share an
+        origin."""
         if self.lattice is None:
             per_origin = list(zip(*masks, strict=True))
         else:
-            per_origin = list(zip(*(interpolate(m, *self.lattice) for m in masks), strict=True))
+            per_origin = list(zip(*(interpolate(m, *self.lattice, channels_last)
+                                    for m in masks), strict=True))  # fmt: skip
         return self._per_tile(per_origin)
 
     def cached_lattice_masks(
-        self, name: Hashable, compute: MaskFunction, dtype: torch.dtype
+        self, name: Hashable, compute: MaskFunction, dtype: torch.dtype, channels_last: bool
     ) -> list[Masks]:
         """Per tile, its interpolated lattice masks ``(lenses, C, h, w)`` in ``dtype``:
         from the cache, or computed for the origins it lacks and stored while they fit.
@@ -279,19 +281,20 @@ class CoordGrid:
         A recording's frames run the same tiles, so from the second frame on the masks are
         read, not interpolated (the interpolation is most of what lattice masks cost).
         """
-        keys = [(name, place, dtype) for place in self.places]
+        keys = [(name, place, dtype, channels_last) for place in self.places]
         per_origin = [self.cache.get(key) for key in keys]
         missing = [u for u, masks in enumerate(per_origin) if masks is None]
         if missing:
             index = torch.tensor(missing, device=self.enc_row.device)
             nodes = compute(self.enc_row[index], self.enc_col[index])
             rows, cols = (axis.select(missing) for axis in self.lattice)
-            computed = zip(*(interpolate(m, rows, cols) for m in nodes), strict=True)
+            computed = zip(*(interpolate(m, rows, cols, channels_last) for m in nodes),
+                           strict=True)  # fmt: skip
             for u, masks in zip(missing, computed, strict=True):
                 masks = tuple(m.to(dtype) for m in masks)
                 if self.cache.reserve(sum(m.nbytes for m in masks)):
                     # stored on their own: a crop would keep its whole up-sampled grid
-                    masks = tuple(m.clone(memory_format=torch.channels_last) for m in masks)
+                    masks = tuple(m.clone() for m in masks)
                     self.cache.put(keys[u], masks)
                 per_origin[u] = masks
         return self._per_tile(per_origin)

@@ -19,7 +19,8 @@ Two interpolation routes give the same values: for masks shared by the lenses, w
 level stride ``2^k`` divides both ``p`` and every tile origin (the usual case: tile grids
 and training patches sit on multiples of the model stride), one bilinear up-sampling with
 aligned corners covers the tiles; otherwise two products with separable interpolation
-matrices do (rows, then columns), which write each tile's masks once, channels last. The
+matrices do (columns, then rows), which write each tile's masks once, in the layout of the
+features they multiply (channels last, or channels first for the view block). The
 up-sampling kernel is the faster of the two for one lens and many channels, but slow for
 a batch of nine lenses of few channels (measured at paper scale: 4-8x the products).
 """
@@ -114,7 +115,7 @@ def lattice_axis(
 
 
 def interpolate(
-    masks: torch.Tensor, rows: LatticeAxis, cols: LatticeAxis
+    masks: torch.Tensor, rows: LatticeAxis, cols: LatticeAxis, channels_last: bool = True
 ) -> list[torch.Tensor]:
     """Masks at the tile pixels from masks at the nodes.
 
@@ -123,15 +124,19 @@ def interpolate(
     masks : torch.Tensor
         ``(U, lenses, C, rows.nodes, cols.nodes)``.
     rows, cols : LatticeAxis
+    channels_last : bool
+        The layout of the features the masks will multiply: channels vary fastest, or
+        (``False``) columns do.
 
     Returns
     -------
     list of torch.Tensor
-        Per tile ``(lenses, C, h, w)``, channels-last (channels vary fastest).
+        Per tile ``(lenses, C, h, w)``, in the layout asked for.
     """
     tiles, lenses, channels = masks.shape[:3]
     h, w = rows.position.shape[1], cols.position.shape[1]
-    if lenses == 1 and rows.upsample is not None and cols.upsample is not None:
+    aligned = rows.upsample is not None and cols.upsample is not None
+    if channels_last and lenses == 1 and aligned:
         size = ((rows.nodes - 1) * rows.upsample + 1, (cols.nodes - 1) * cols.upsample + 1)
         flat = masks.reshape(tiles * lenses, channels, rows.nodes, cols.nodes)
         # a copy of the (small) node masks with canonical channels-last strides: the
@@ -146,6 +151,9 @@ def interpolate(
         ]
     weights_r = _hat_matrix(rows.position, rows.nodes).to(masks.dtype)  # (U, h, R)
     weights_c = _hat_matrix(cols.position, cols.nodes).to(masks.dtype)  # (U, w, S)
+    if not channels_last:  # (U, lenses, C, R, S) -> (U, lenses, C, h, w)
+        along_cols = torch.matmul(masks, weights_c.transpose(1, 2)[:, None, None])
+        return list(torch.matmul(weights_r[:, None, None], along_cols))
     along_cols = torch.matmul(weights_c[:, None, None], masks.permute(0, 1, 3, 4, 2))
     out = torch.matmul(weights_r[:, None], along_cols.flatten(3))  # (U, lenses, h, w·C)
     return list(out.view(tiles, lenses, h, w, channels).permute(0, 1, 4, 2, 3))

@@ -150,7 +150,8 @@ class _ViewNet(nn.Module):
     def run(self, views: torch.Tensor, grids: Sequence[CoordGrid | None]) -> torch.Tensor:
         """Network on padded views ``(B, 9, H, W)``; ``grids[k]`` for level ``k``."""
         batch, lenses, h, w = views.shape
-        x = _channels_last(self.intro(views.reshape(batch * lenses, 1, h, w)))
+        # the view block's few channels per lens run channels first (see LayerNorm2d)
+        x = self.intro(views.reshape(batch * lenses, 1, h, w).contiguous())
         x = self.view_block(x, grids[0])
         x = self.fusion(_channels_last(x.reshape(batch, lenses * x.shape[1], h, w)))
         out = self.ending(self.unet(x, grids))

@@ -39,8 +39,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
 from safetensors.torch import load_file
 from torch.nn.parallel import DistributedDataParallel
 from tqdm.auto import tqdm
@@ -510,6 +508,9 @@ class Trainer:
 
     def plot(self, path: str | Path) -> None:
         """Loss curves (per step and per epoch, train and validation) and validation PSNR."""
+        from matplotlib.backends.backend_agg import FigureCanvasAgg  # only when drawing
+        from matplotlib.figure import Figure
+
         figure = Figure(figsize=(9, 3.6), layout="constrained")
         FigureCanvasAgg(figure)
         ax_loss, ax_psnr = figure.subplots(1, 2)
