@@ -226,3 +226,21 @@ def test_layer_norm_matches_the_per_pixel_formula_in_float64(layout):
                                atol=16 * np.finfo(np.float32).eps * np.abs(expected).max())
     out.square().sum().backward()
     assert x.grad is not None and torch.isfinite(x.grad).all()
+
+
+def test_view_block_runs_channels_first_and_the_u_net_channels_last():
+    """The layouts each part is fast in (see LayerNorm2d); the output does not depend on
+    them: the same model on a channels-last copy of the input gives the same result."""
+    model = _model(ModelConfig.mini()).eval()
+    seen = {}
+    model.demix.view_block.register_forward_hook(
+        lambda m, args, out: seen.setdefault("view", args[0]))
+    model.demix.unet.register_forward_hook(lambda m, args, out: seen.setdefault("unet", args[0]))
+    views = torch.rand(1, 9, 48, 48)
+    with torch.no_grad():
+        first = model(views, [[0, 0]], 96)
+        second = model(views.contiguous(memory_format=torch.channels_last), [[0, 0]], 96)
+    assert seen["view"].is_contiguous()
+    assert seen["unet"].is_contiguous(memory_format=torch.channels_last)
+    for a, b in zip(first, second, strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)

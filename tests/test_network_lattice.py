@@ -73,8 +73,9 @@ def test_mask_spacing_for_respects_the_tolerance():
 
 @pytest.mark.parametrize("lenses", [1, 9])
 def test_both_interpolation_routes_match_bilinear_upsampling(lenses):
-    """Either route (up-sampling for one aligned lens, interpolation matrices otherwise)
-    gives each tile's crop of torch's bilinear up-sampling of its node masks."""
+    """Either route (up-sampling for one aligned lens, interpolation matrices otherwise,
+    in either layout) gives each tile's crop of torch's bilinear up-sampling of its node
+    masks."""
     torch.manual_seed(0)
     origins = torch.tensor([0, 16, 40])
     for level in (0, 1, 2):
@@ -86,7 +87,9 @@ def test_both_interpolation_routes_match_bilinear_upsampling(lenses):
         general = (LatticeAxis(rows.position, rows.nodes, None, ()),
                    LatticeAxis(cols.position, cols.nodes, None, ()))  # fmt: skip
         size = [(axis.nodes - 1) * axis.upsample + 1 for axis in (rows, cols)]
-        for route in (interpolate(masks, rows, cols), interpolate(masks, *general)):
+        routes = (interpolate(masks, rows, cols), interpolate(masks, *general),
+                  interpolate(masks, rows, cols, channels_last=False))  # fmt: skip
+        for route in routes:
             for t, tile in enumerate(route):
                 up = F.interpolate(masks[t], size=size, mode="bilinear", align_corners=True)
                 r, c = rows.crops[t], cols.crops[t]
