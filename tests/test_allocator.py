@@ -34,9 +34,11 @@ def _page_faults(mode: str, env: dict[str, str] | None = None) -> int:
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc only")
 def test_freed_blocks_are_reused_instead_of_paged_in_again():
     # by default each of four 128 MiB arrays is paged in again: at least 64 faults each
-    # even with 2 MiB pages (32768 with 4 KiB pages); kept, they come back without any
-    assert _page_faults("default") >= 4 * 64
-    assert _page_faults("keep") < 64
+    # even with 2 MiB pages (32768 with 4 KiB pages); kept, they come back without any,
+    # but for the odd one placed anew when another thread's block took the heap's top
+    default = _page_faults("default")
+    assert default >= 4 * 64
+    assert _page_faults("keep") <= default // 3
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc only")
