@@ -228,9 +228,8 @@ class _MaskedModel(nn.Module):
         (``mask_spacing > 0``) it keeps instead each tile's interpolated masks under the
         tile's place (origin, shape, sub-view size): the frames of a recording run the same
         tiles, and reading the masks costs less than interpolating them again. Entries are
-        dropped when the weights they
-        depend on change (in-place updates, loading, dtype or device moves). Leaving
-        the ``with`` block restores the previous cache.
+        dropped when the weights they depend on change (in-place updates, loading, dtype
+        or device moves). Leaving the ``with`` block restores the previous cache.
 
         Examples
         --------
