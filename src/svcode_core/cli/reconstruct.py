@@ -94,7 +94,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--mask-cache", type=int, default=1024, metavar="MIB",
                         help="memory for frozen coordinate masks, kept for the next tile "
                         "and frame; 0 to recompute them (default: 1024; the bundled cm2-mini "
-                        "model needs 640 for its whole-sub-view tile)")
+                        "model needs 614 for its whole-sub-view tile)")
     parser.add_argument(
         "--workers",
         type=int,

@@ -154,12 +154,13 @@ class Reconstructor(BaseReconstructor):
         ``k`` of the skip threshold ``dark_offset + k · noise_floor``.
     mask_cache_bytes : int
         Memory for frozen coordinate masks (:meth:`SVCoDe.cache_masks`), reused by every
-        tile and frame; 0 recomputes them for each batch. The default (1 GiB) holds all of
-        the bundled ``cm2-mini`` model's masks (640 MiB, :meth:`SVCoDe.mask_field_bytes`);
-        a smaller budget caches part of them (256 MiB: about 4× slower on ``cm2-mini``).
-        For models whose masks sit on a lattice (``ModelConfig.mask_spacing``, the
-        bundled one) it keeps each tile's interpolated masks instead, read by every frame
-        after the first.
+        tile and frame; 0 recomputes them for each batch. For models whose masks sit on a
+        lattice (``ModelConfig.mask_spacing``, the bundled one) it keeps each tile's
+        interpolated masks, read by every frame after the first: the default (1 GiB)
+        holds the bundled ``cm2-mini`` model's whole-sub-view tile (614 MiB; about 1.4×
+        faster with them kept). Models with exact per-pixel masks keep their masks over
+        the whole sub-view (:meth:`SVCoDe.mask_field_bytes`, 640 MiB for a ``cm2-mini``
+        one; a smaller budget caches part of them, 256 MiB: about 4× slower).
     tile_memory_bytes : int
         Working-memory budget of one batch of tiles for the default tiling.
 
