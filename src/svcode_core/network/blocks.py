@@ -27,7 +27,7 @@ class LayerNorm2d(nn.Module):
         self.eps = eps
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if _channels_last(x):
+        if _is_channels_last(x):
             pixels = x.permute(0, 2, 3, 1)  # (B, h, w, C)
             normed = F.layer_norm(pixels, (x.shape[1],), self.weight, self.bias, self.eps)
             return normed.permute(0, 3, 1, 2)
@@ -145,7 +145,7 @@ class CoDeBlock(nn.Module):
         cache, or computed (at the pixels, or at the lattice nodes and interpolated)."""
         c, mlp = self.beta.shape[1], self.conv1.mlp
         dtype = _mask_dtype(x.device, mlp.w_out.dtype)
-        channels_last = _channels_last(x)
+        channels_last = _is_channels_last(x)
         if grid.cached and grid.lattice is not None:
             return grid.cached_lattice_masks(self.cache_name, self.folded_masks, dtype,
                                              channels_last)  # fmt: skip
@@ -158,7 +158,7 @@ class CoDeBlock(nn.Module):
         return [tuple(m.to(dtype) for m in masks) for masks in tiles]
 
 
-def _channels_last(x: torch.Tensor) -> bool:
+def _is_channels_last(x: torch.Tensor) -> bool:
     """Whether ``x``'s channels vary fastest in memory (and its columns do not)."""
     return x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous()
 
