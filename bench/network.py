@@ -63,7 +63,11 @@ VARIANTS = ("plain", "lattice", "lattice-cached-512", "lattice-cached", "uncache
             "cached-full")
 SCALE_VARIANTS = {"cm2-mini": ("plain", "lattice", "lattice-cached", "uncached", "cached"),
                   "training": ("plain", "lattice", "uncached"), "paper": VARIANTS}
-HALF_BUDGET = 512 * 2**20  # ``lattice-cached-512``: a cache that holds part of a paper tile
+CACHE_BYTES = {  # the mask cache of each cached variant (``cached-full``: the whole field)
+    "lattice-cached-512": 512 * 2**20,  # holds part of a paper tile's masks
+    "lattice-cached": DEFAULT_MEMORY_BUDGET,
+    "cached": DEFAULT_MEMORY_BUDGET,
+}
 
 
 def measure(scale: str, variant: str, iters: int, threads: int) -> dict:
@@ -84,11 +88,10 @@ def measure(scale: str, variant: str, iters: int, threads: int) -> dict:
         return _training_step(model, views, iters, spec, variant, threads)
     origins = [[(i // 2) * spec["stride"], (i % 2) * spec["stride"]] for i in range(batch)]
     sub_view = tile if variant == "cached-full" else spec["sub_view"]
-    if variant in ("lattice-cached", "cached", "cached-full"):
-        model.cache_masks(max_bytes=max(DEFAULT_MEMORY_BUDGET, model.mask_field_bytes(sub_view))
-                          if variant == "cached-full" else DEFAULT_MEMORY_BUDGET)
-    elif variant == "lattice-cached-512":
-        model.cache_masks(max_bytes=HALF_BUDGET)
+    if variant == "cached-full":
+        model.cache_masks(max_bytes=max(DEFAULT_MEMORY_BUDGET, model.mask_field_bytes(sub_view)))
+    elif variant in CACHE_BYTES:
+        model.cache_masks(max_bytes=CACHE_BYTES[variant])
     times, cpu_times = [], []
     with PeakMemory() as rss, torch.inference_mode():
         model(views, origins, sub_view)  # warm-up (fills the cache)
