@@ -199,7 +199,7 @@ def _add_product(
     """``x + mask ⊙ z`` tile by tile, in one pass per tile."""
     batch = len(masks)
     if torch.is_grad_enabled():
-        return (_tiles(x, batch) + _batched(masks) * _tiles(z, batch)).view_as(x)
+        return torch.addcmul(_tiles(x, batch), _batched(masks), _tiles(z, batch)).view_as(x)
     dtype = torch.promote_types(torch.promote_types(x.dtype, z.dtype), masks[0].dtype)
     out = torch.empty_like(x, dtype=dtype)
     for o, xb, m, zb in zip(_tiles(out, batch), _tiles(x, batch), masks, _tiles(z, batch),
