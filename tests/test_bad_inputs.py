@@ -508,6 +508,9 @@ def test_tile_options_of_the_network_are_refused_for_a_baseline(scene, capsys):
     status, err = wiener(capsys, scene / "meas.tif", scene / "out.tif", "--tile", "16")
     assert status == 2
     one_error_line(err, "--tile and --stride apply to --method svcode")
+    status, err = wiener(capsys, scene / "meas.tif", scene / "out.tif", "--pool-window", "96")
+    assert status == 2
+    one_error_line(err, "--pool-window applies to --method svcode")
 
 
 def test_missing_and_unreadable_inputs_are_one_line(scene, capsys):

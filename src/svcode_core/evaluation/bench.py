@@ -21,7 +21,8 @@ Rows (per regime)
       10 and 30 iterations;
     * **SV-CoDe** (only with ``--weights`` or a bundled model): the planned tiling
       (:func:`~svcode_core.methods.svcode.plan_tiles`) in every regime and, in the matched
-      one, the system's patch ``P`` at stride ``P/2`` and ``P/4``; with ``--all-knobs``,
+      one, the system's patch ``P`` at stride ``P/2`` and ``P/4`` and the planned tiling
+      with its channel attention pooled over ``P`` pixels (``--pool-window``); with ``--all-knobs``,
       in the matched regime, also batches of one, mask cache off, bf16 and empty-tile
       skipping off (knobs that change the time, not the estimate);
     * learned baselines (``--learned``) and ablations (``--ablations``), one row each;
@@ -303,7 +304,8 @@ def svcode_rows(
 
     ``all_knobs``: ``True`` every knob, ``False`` the default only, an integer ``n`` the
     first ``n`` (default: the planned tiling; then the system's patch ``P`` at stride
-    ``P/2`` and ``P/4`` with batches of 8 and of 1, cache off, bf16, skipping off).
+    ``P/2`` and ``P/4`` with batches of 8, channel attention pooled over ``P`` pixels
+    (``pool_window``), ``P`` at ``P/2`` with batches of 1, cache off, bf16, skipping off).
 
     With ``cache`` (a dict kept across calls) each knob's reconstructor is built and warmed
     up once and reused for the scenes of later regimes. ``footprint`` measures the model's
@@ -318,6 +320,7 @@ def svcode_rows(
         planned,
         {**planned, "tile": patch, "stride": patch // 2, "batch": 8},
         {**planned, "tile": patch, "stride": patch // 4, "batch": 8},
+        {**planned, "pool": patch},
         {**planned, "tile": patch, "stride": patch // 2, "batch": 1},
         {**planned, "cache": False},
         {**planned, "precision": "bf16"},
@@ -332,6 +335,7 @@ def svcode_rows(
                 "svcode", system, weights, precision=knob["precision"], tile_size=knob["tile"],
                 stride=knob["stride"], batch_size=knob["batch"], skip_empty=knob["skip"],
                 mask_cache_bytes=DEFAULT_MASK_CACHE_BYTES if knob["cache"] else 0,
+                pool_window=knob.get("pool"),
             )  # fmt: skip
             rec.reconstruct(scenes[0].raw)  # warm-up: fills the mask cache, as in a recording
             return rec
@@ -443,7 +447,7 @@ def run_benchmark(
         if "deconvolution" in methods:
             new += deconvolution_rows(op, scenes, quick)
         if "svcode" in methods and weights is not None:
-            knobs = (all_knobs or 3) if regime == "matched" and not quick else 1
+            knobs = (all_knobs or 4) if regime == "matched" and not quick else 1
             new += svcode_rows(weights, system, scenes, all_knobs=knobs, cache=cache,
                                footprint=not quick)  # fmt: skip
         for path in ablations:

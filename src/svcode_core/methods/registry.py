@@ -54,8 +54,8 @@ class Method:
     precisions : tuple of str
         The ``precision`` values it accepts, the default first.
     options : tuple of str
-        Its own keyword options (model-based methods), besides ``device`` and
-        ``precision``.
+        Its own keyword options, besides ``device``, ``precision`` and (SV-CoDe) the
+        tiling options.
     architecture : str or None
         The model class its model files hold (trained methods).
     """
@@ -76,7 +76,7 @@ class Method:
 
 _ALL = (
     Method(SVCODE, "SV-CoDe (network)", "SV-CoDe", SVCODE, ("fp32", "bf16", "fp16"),
-           architecture="SVCoDe"),
+           options=("pool_window",), architecture="SVCoDe"),
     Method("admm", "LSV-ADMM (TV)", "LSV-ADMM", MODEL_BASED, ("fp32", "fp64"),
            options=("rank", "memory_budget", "iterations", "tv_weight", "rho", "tolerance",
                     "cg_iterations")),
@@ -111,6 +111,7 @@ OPTION_FLAGS: dict[str, str] = {
     "batch_size": "--batch-size",
     "skip_empty": "--no-skip",
     "mask_cache_bytes": "--mask-cache",
+    "pool_window": "--pool-window",
     "rank": "--rank",
     "memory_budget": "--memory-budget",
     "iterations": "--iterations",

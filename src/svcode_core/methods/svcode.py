@@ -163,6 +163,12 @@ class Reconstructor(BaseReconstructor):
         one; a smaller budget caches part of them, 256 MiB: about 4× slower).
     tile_memory_bytes : int
         Working-memory budget of one batch of tiles for the default tiling.
+    pool_window : int, optional
+        Pool the channel attention over this many pixels around each pixel (the training
+        patch size, 96 for the bundled model) instead of the whole tile
+        (:attr:`~svcode_core.network.ModelConfig.pool_window`); default: as the model file
+        says. Tiles of any size then agree with the whole sub-view (no seams), at about
+        1.3× the time of a whole-sub-view tile.
 
     Examples
     --------
@@ -193,6 +199,7 @@ class Reconstructor(BaseReconstructor):
         skip_factor: float = DEFAULT_SKIP_FACTOR,
         mask_cache_bytes: int = DEFAULT_MASK_CACHE_BYTES,
         tile_memory_bytes: int = DEFAULT_TILE_MEMORY_BYTES,
+        pool_window: int | None = None,
     ) -> None:
         if not isinstance(system, SystemConfig):
             raise TypeError(f"system must be a SystemConfig, got {type(system).__name__}")
@@ -223,6 +230,11 @@ class Reconstructor(BaseReconstructor):
         self.skip_empty = skip_empty
         self.skip_threshold = system.noise.dark_offset + skip_factor * noise_floor(system.noise)
         self.model = model.to(self.device).eval()
+        if pool_window is not None:
+            if not hasattr(self.model, "set_pool_window"):
+                raise ValueError(f"pool_window: {type(model).__name__} has no channel "
+                                 "attention to pool")
+            self.model.set_pool_window(pool_window)
         if not isinstance(mask_cache_bytes, int) or mask_cache_bytes < 0:
             raise ValueError(f"mask_cache_bytes must be a non-negative integer, "
                              f"got {mask_cache_bytes!r}")

@@ -8,7 +8,8 @@ from torch import nn
 
 from .coordgate import CoordGate, CoordGrid, tile_masks
 
-__all__ = ["CoDeBlock", "LayerNorm2d", "SimpleChannelAttention", "SimpleGate", "ViewFusion"]
+__all__ = ["CoDeBlock", "LayerNorm2d", "SimpleChannelAttention", "SimpleGate", "ViewFusion",
+           "pooled_mean", "spread"]
 
 
 class LayerNorm2d(nn.Module):
@@ -47,14 +48,87 @@ class SimpleGate(nn.Module):
 
 
 class SimpleChannelAttention(nn.Module):
-    """NAFNet's simplified channel attention: ``x · conv1×1(mean_space(x))``."""
+    """NAFNet's simplified channel attention: ``x · conv1×1(mean_space(x))``.
+
+    The mean is over the whole tile, or over a window around each pixel when
+    :attr:`window` is set (see :func:`pooled_mean`; set by the owning model from
+    ``ModelConfig.pool_window``).
+    """
 
     def __init__(self, channels: int) -> None:
         super().__init__()
         self.conv = nn.Conv2d(channels, channels, 1)
+        self.window, self.cell = 0, 1
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return x * self.conv(x.mean((2, 3), keepdim=True))
+        weights = self.conv(pooled_mean(x, self.window, self.cell))
+        return x * spread(weights, x)
+
+
+def pooled_mean(x: torch.Tensor, window: int = 0, cell: int = 1) -> torch.Tensor:
+    """The spatial mean that channel attention sees: over the whole map, or per pixel over
+    a ``window``-pixel square around it, kept inside the map.
+
+    A network trained on patches of ``P`` pixels has seen means over ``P × P`` squares
+    only; on a larger tile, ``window = P`` (at this level's scale) gives every pixel such a
+    mean instead of the whole tile's, so the output no longer depends on the tile's extent
+    beyond ``P`` (near the map's edge the square is shifted inwards, as a training patch's
+    edge pixels see their patch). The local means are taken on a grid of ``cell × cell``
+    cells, to be interpolated back to the pixels by :func:`spread`: they vary slowly, and
+    per pixel they would cost more than the block they serve.
+
+    Parameters
+    ----------
+    x : torch.Tensor
+        ``(B, C, H, W)``, ``H`` and ``W`` multiples of ``cell``.
+    window : int
+        Side of the square in pixels; 0, or a window covering the map, gives the mean
+        over the whole map.
+    cell : int
+        Side of the grid cells in pixels.
+
+    Returns
+    -------
+    torch.Tensor
+        ``(B, C, 1, 1)`` for the whole map, else ``(B, C, H / cell, W / cell)``.
+
+    Examples
+    --------
+    >>> x = torch.arange(8.0).view(1, 1, 1, 8).expand(1, 1, 4, 8)
+    >>> pooled_mean(x).flatten().tolist()
+    [3.5]
+    >>> pooled_mean(x, window=4, cell=2)[0, 0, 0].tolist()  # squares of 4 columns
+    [1.5, 1.5, 3.5, 5.5]
+    """
+    h, w = x.shape[-2:]
+    if window <= 0 or (window >= h and window >= w):
+        return x.mean((2, 3), keepdim=True)
+    cells = F.avg_pool2d(x, cell) if cell > 1 else x
+    size = max(window // cell, 1)
+    return _box_mean(_box_mean(cells, 2, size), 3, size)
+
+
+def _box_mean(x: torch.Tensor, dim: int, size: int) -> torch.Tensor:
+    """Mean over ``size`` consecutive entries along ``dim`` around each entry, the run
+    shifted inside the axis at its ends (the whole axis if it is shorter)."""
+    n = x.shape[dim]
+    if size >= n:
+        return x.mean(dim, keepdim=True)
+    sums = torch.cumsum(x, dim)
+    sums = torch.cat([torch.zeros_like(sums.narrow(dim, 0, 1)), sums], dim)
+    runs = sums.narrow(dim, size, n - size + 1) - sums.narrow(dim, 0, n - size + 1)
+    start = (torch.arange(n, device=x.device) - size // 2).clamp(0, n - size)
+    return runs.index_select(dim, start) / size
+
+
+def spread(weights: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """Weights from :func:`pooled_mean`'s grid, bilinearly at ``x``'s pixels (a single
+    value per map broadcasts as it is)."""
+    if weights.shape[-2:] == (1, 1):
+        return weights
+    if weights.shape[-2:] == x.shape[-2:]:
+        return weights
+    return F.interpolate(weights, size=x.shape[-2:], mode="bilinear", align_corners=False)
 
 
 class CoDeBlock(nn.Module):
@@ -211,7 +285,8 @@ def _add_product(
 class ViewFusion(nn.Module):
     """Channel attention with view-wise pooling, then a 1×1 merge of the views.
 
-    Every (view, channel) feature map is average-pooled over space; a 1×1 layer and a
+    Every (view, channel) feature map is average-pooled over space (the tile, or a window
+    around each pixel: :func:`pooled_mean`); a 1×1 layer and a
     sigmoid turn the pooled ``V·c`` vector into one weight per view and channel
     (squeeze-and-excitation), and a 1×1 convolution merges the weighted views into
     ``out_channels``.
@@ -221,8 +296,9 @@ class ViewFusion(nn.Module):
         super().__init__()
         self.attention = nn.Conv2d(views * channels, views * channels, 1)
         self.merge = nn.Conv2d(views * channels, out_channels, 1)
+        self.window, self.cell = 0, 1  # the pooling, as in SimpleChannelAttention
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """``x``: ``(B, V·c, h, w)`` (views major) → ``(B, out_channels, h, w)``."""
-        weights = torch.sigmoid(self.attention(x.mean((2, 3), keepdim=True)))
-        return self.merge(x * weights)
+        weights = torch.sigmoid(self.attention(pooled_mean(x, self.window, self.cell)))
+        return self.merge(x * spread(weights, x))

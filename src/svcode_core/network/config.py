@@ -105,6 +105,15 @@ class ModelConfig(BlockConfig):
         option existed load with ``0``, as they were trained.
         :func:`~.lattice.mask_spacing_for` gives the largest spacing whose encoding
         interpolation error is within a tolerance.
+    pool_window : int
+        ``0``: the channel attention of every block and the view fusion pool over the whole
+        tile, as in NAFNet. ``P > 0``: they pool, per pixel, over a ``P``-pixel square
+        (level-0 pixels; kept inside the tile), which is what they saw while training on
+        ``P``-pixel patches, so a tile larger than ``P`` (a whole sub-view) is processed as
+        the patches were and tiled and whole-sub-view outputs agree
+        (:func:`~.blocks.pooled_mean`). On patches of at most ``P`` pixels both are the same,
+        so this is an inference setting that training leaves alone. Model files written
+        before this option existed load with ``0``, as they ran.
     output : {"sigmoid", "linear"}
         Output activation of both stages. ``"sigmoid"`` is the published design.
         ``"linear"`` leaves the last convolution unbounded while training and clamps it
@@ -129,6 +138,7 @@ class ModelConfig(BlockConfig):
     lens_specific_first_block: bool = True
     output: str = "sigmoid"
     mask_spacing: int = 0
+    pool_window: int = 0
 
     block_lists = ("demix_enc_blocks", "demix_dec_blocks", "recon_enc_blocks",
                    "recon_dec_blocks")  # fmt: skip
@@ -166,7 +176,7 @@ class ModelConfig(BlockConfig):
         """Check every field; raise :class:`~svcode_core.config.ConfigError` naming it."""
         for name in ("width", "view_width", "pe_bands", "mlp_hidden"):
             check_int(name, getattr(self, name), minimum=1)
-        for name in ("demix_middle_blocks", "recon_middle_blocks", "mask_spacing"):
+        for name in ("demix_middle_blocks", "recon_middle_blocks", "mask_spacing", "pool_window"):
             check_int(name, getattr(self, name), minimum=0)
         for name in self.block_lists:
             value = getattr(self, name)

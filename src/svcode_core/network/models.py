@@ -141,6 +141,14 @@ class _ViewNet(nn.Module):
         self.fusion = ViewFusion(N_LENSES, config.view_width, config.width)
         self.unet = UNet(config, enc_blocks, middle_blocks, dec_blocks)
         self.ending = nn.Conv2d(config.width, out_channels, 3, padding=1)
+        self._set_pooling(config.pool_window)
+
+    def _set_pooling(self, window: int) -> None:
+        """Channel attention and view fusion pool over ``window`` level-0 pixels (0: the
+        whole tile), on the grid of the stage's coarsest level (:func:`~.blocks.pooled_mean`)."""
+        for _, block, level in self.named_blocks():
+            block.sca.window, block.sca.cell = window >> level, 2 ** (self.levels - level)
+        self.fusion.window, self.fusion.cell = window, 2**self.levels
 
     @property
     def levels(self) -> int:
@@ -264,6 +272,23 @@ class _MaskedModel(nn.Module):
     def _levels(self) -> int:
         return max(stage.levels for stage in self._stages())
 
+    def set_pool_window(self, window: int) -> None:
+        """Pool channel attention and view fusion over ``window`` level-0 pixels around each
+        pixel, or (0) over the whole tile: :attr:`ModelConfig.pool_window`, which this
+        sets (a saved model records it). Weights and training are unaffected.
+
+        Examples
+        --------
+        >>> model = SVCoDe(ModelConfig.mini())
+        >>> model.set_pool_window(96)
+        >>> model.model_config.pool_window
+        96
+        """
+        self.model_config = self.model_config.replace(pool_window=window)
+        for stage in self._stages():
+            stage.config = stage.config.replace(pool_window=window)
+            stage._set_pooling(window)
+
     @property
     def stride(self) -> int:
         """The model stride ``2**levels``: tile sides are padded to a multiple of it."""
@@ -284,7 +309,8 @@ class _MaskedModel(nn.Module):
         """Level-0 pixels a tile's output depends on beyond its own pixels, through the
         convolutions (each 3×3 depthwise convolution at level ``k`` reaches ``2^k``
         pixels, each down- or up-sampling ``2^k``, the first and last 3×3 convolutions
-        one); channel attention averages over the whole tile and is not counted."""
+        one); channel attention averages over the whole tile, or a window around each
+        pixel (``pool_window``), and is not counted."""
         radius = 0
         for stage in self._stages():
             radius += 2  # the stage's first and last 3x3 convolutions
