@@ -42,7 +42,8 @@ def test_reconstructor_uses_the_plan_and_keeps_explicit_settings():
 @pytest.mark.xfail(strict=True, reason="the bundled model's output depends on the tile's "
                    "extent, not only at seams: its channel attention pools over the whole "
                    "tile (trained on 96-px patches); 192-px tiles agree with the whole "
-                   "sub-view to 30 dB; see its model card")
+                   "sub-view to 30 dB; see its model card. With pool_window=96 they agree "
+                   "(test_network_pooling.py)")
 def test_tiled_output_has_no_visible_seams():
     """The bundled model on a simulated scene: 192-pixel tiles with the planned overlap
     agree with the whole-sub-view reconstruction to better than 40 dB."""
