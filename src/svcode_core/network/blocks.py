@@ -249,11 +249,31 @@ def _tiles(t: torch.Tensor, batch: int) -> torch.Tensor:
     return t.view(batch, -1, *t.shape[1:])
 
 
+def _in_memory_order(t: torch.Tensor, channels_last: bool) -> torch.Tensor:
+    """``(B, V, C, h, w)`` with the channels moved last when they are last in memory.
+
+    Products that need gradients run on this view: their masks' gradients are sums over
+    the tiles, which torch takes 2-3x faster along a dense last axis than along the
+    channels-last layout of a 5-d tensor (the same values, measured bit for bit).
+    """
+    return t.permute(0, 1, 3, 4, 2) if channels_last else t
+
+
+def _from_memory_order(t: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """Undo :func:`_in_memory_order` and view as ``like`` ``(B·V, C, h, w)``."""
+    if _is_channels_last(like):
+        t = t.permute(0, 1, 4, 2, 3)
+    return t.reshape(like.shape)
+
+
 def _multiply(y: torch.Tensor, masks: tuple[torch.Tensor, ...]) -> torch.Tensor:
     """``y`` multiplied by the mask of each tile: in place (``y`` is a temporary) without
     gradient, out of place (the product needs ``y``) with it."""
     if torch.is_grad_enabled():
-        return (_tiles(y, len(masks)) * _batched(masks)).view_as(y)
+        last = _is_channels_last(y)
+        product = (_in_memory_order(_tiles(y, len(masks)), last)
+                   * _in_memory_order(_batched(masks), last))  # fmt: skip
+        return _from_memory_order(product, y)
     for tile, mask in zip(_tiles(y, len(masks)), masks, strict=True):
         tile.mul_(mask)
     return y
@@ -273,7 +293,10 @@ def _add_product(
     """``x + mask ⊙ z`` tile by tile, in one pass per tile."""
     batch = len(masks)
     if torch.is_grad_enabled():
-        return torch.addcmul(_tiles(x, batch), _batched(masks), _tiles(z, batch)).view_as(x)
+        last = _is_channels_last(x)
+        x5, z5 = (_in_memory_order(_tiles(t, batch), last) for t in (x, z))
+        out = torch.addcmul(x5, _in_memory_order(_batched(masks), last), z5)
+        return _from_memory_order(out, x)
     dtype = torch.promote_types(torch.promote_types(x.dtype, z.dtype), masks[0].dtype)
     out = torch.empty_like(x, dtype=dtype)
     for o, xb, m, zb in zip(_tiles(out, batch), _tiles(x, batch), masks, _tiles(z, batch),
