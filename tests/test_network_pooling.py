@@ -109,3 +109,10 @@ def test_a_bad_window_is_a_clear_error():
     with pytest.raises(ConfigError, match="pool_window"):
         Reconstructor(model, SystemConfig.tiny(), pool_window=-1)
     assert issubclass(ConfigError, ValueError)
+
+
+def test_a_small_window_stays_local_at_every_level():
+    model = SVCoDe(ModelConfig.mini().replace(pool_window=4))
+    windows = [block.sca.window for stage in (model.demix, model.recon)
+               for _, block, _ in stage.named_blocks()]
+    assert min(windows) == 1  # 4 px at level 0 is 1 px at levels 2 and 3, not the whole tile

@@ -124,9 +124,7 @@ def _box_mean(x: torch.Tensor, dim: int, size: int) -> torch.Tensor:
 def spread(weights: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     """Weights from :func:`pooled_mean`'s grid, bilinearly at ``x``'s pixels (a single
     value per map broadcasts as it is)."""
-    if weights.shape[-2:] == (1, 1):
-        return weights
-    if weights.shape[-2:] == x.shape[-2:]:
+    if weights.shape[-2:] in ((1, 1), x.shape[-2:]):
         return weights
     return F.interpolate(weights, size=x.shape[-2:], mode="bilinear", align_corners=False)
 

@@ -147,7 +147,8 @@ class _ViewNet(nn.Module):
         """Channel attention and view fusion pool over ``window`` level-0 pixels (0: the
         whole tile), on the grid of the stage's coarsest level (:func:`~.blocks.pooled_mean`)."""
         for _, block, level in self.named_blocks():
-            block.sca.window, block.sca.cell = window >> level, 2 ** (self.levels - level)
+            scaled = max(window >> level, 1) if window else 0  # never 0 (whole tile) by rounding
+            block.sca.window, block.sca.cell = scaled, 2 ** (self.levels - level)
         self.fusion.window, self.fusion.cell = window, 2**self.levels
 
     @property
