@@ -293,8 +293,8 @@ class CoordGrid:
             for u, masks in zip(missing, computed, strict=True):
                 masks = tuple(m.to(dtype) for m in masks)
                 if self.cache.reserve(sum(m.nbytes for m in masks)):
-                    # stored on their own: a crop would keep its whole up-sampled grid
-                    masks = tuple(m.clone() for m in masks)
+                    # stored on their own: a view would keep the whole batch's tensor
+                    masks = tuple(m.clone() if _shares_storage(m) else m for m in masks)
                     self.cache.put(keys[u], masks)
                 per_origin[u] = masks
         return self._per_tile(per_origin)
@@ -304,6 +304,11 @@ class CoordGrid:
         if self.tiles is None:
             return per_origin
         return [per_origin[u] for u in self.tiles.tolist()]
+
+
+def _shares_storage(t: torch.Tensor) -> bool:
+    """Whether ``t`` is a view of a larger tensor (its storage holds more than it)."""
+    return t.untyped_storage().nbytes() > t.nbytes
 
 
 Masks = tuple[torch.Tensor, ...]
