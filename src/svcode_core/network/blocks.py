@@ -257,9 +257,9 @@ def _in_memory_order(t: torch.Tensor, channels_last: bool) -> torch.Tensor:
     return t.permute(0, 1, 3, 4, 2) if channels_last else t
 
 
-def _from_memory_order(t: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+def _from_memory_order(t: torch.Tensor, channels_last: bool, like: torch.Tensor) -> torch.Tensor:
     """Undo :func:`_in_memory_order` and view as ``like`` ``(B·V, C, h, w)``."""
-    if _is_channels_last(like):
+    if channels_last:
         t = t.permute(0, 1, 4, 2, 3)
     return t.reshape(like.shape)
 
@@ -271,7 +271,7 @@ def _multiply(y: torch.Tensor, masks: tuple[torch.Tensor, ...]) -> torch.Tensor:
         last = _is_channels_last(y)
         product = (_in_memory_order(_tiles(y, len(masks)), last)
                    * _in_memory_order(_batched(masks), last))  # fmt: skip
-        return _from_memory_order(product, y)
+        return _from_memory_order(product, last, y)
     for tile, mask in zip(_tiles(y, len(masks)), masks, strict=True):
         tile.mul_(mask)
     return y
@@ -294,7 +294,7 @@ def _add_product(
         last = _is_channels_last(x)
         x5, z5 = (_in_memory_order(_tiles(t, batch), last) for t in (x, z))
         out = torch.addcmul(x5, _in_memory_order(_batched(masks), last), z5)
-        return _from_memory_order(out, x)
+        return _from_memory_order(out, last, x)
     dtype = torch.promote_types(torch.promote_types(x.dtype, z.dtype), masks[0].dtype)
     out = torch.empty_like(x, dtype=dtype)
     for o, xb, m, zb in zip(_tiles(out, batch), _tiles(x, batch), masks, _tiles(z, batch),
