@@ -320,7 +320,7 @@ def svcode_rows(
         planned,
         {**planned, "tile": patch, "stride": patch // 2, "batch": 8},
         {**planned, "tile": patch, "stride": patch // 4, "batch": 8},
-        {**planned, "pool": patch},
+        {**planned, "pool": patch},  # the only knob with "pool": other rows keep their labels
         {**planned, "tile": patch, "stride": patch // 2, "batch": 1},
         {**planned, "cache": False},
         {**planned, "precision": "bf16"},
