@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -286,6 +287,25 @@ def test_resume_continues_exactly(tiny_data, tmp_path, monkeypatch):
         _trainer(tiny_data, run, lr=5e-4).fit(resume=True)
     with pytest.raises(FileNotFoundError, match="no checkpoint"):
         _trainer(tiny_data, tmp_path / "c").fit(resume=True)
+
+
+def test_resume_from_a_checkpoint_older_than_a_config_field(tiny_data, tmp_path):
+    """A field added after a checkpoint was written compares at its default."""
+    run = tmp_path / "run"
+    _trainer(tiny_data, run).fit()
+    state_file = run / "checkpoints" / "epoch-0002.pt"
+    state = torch.load(state_file, weights_only=True)
+    for key in ("model_config", "train_config"):  # as written before pool_window, warmup_steps
+        stored = json.loads(state[key])
+        stored.pop("pool_window" if key == "model_config" else "warmup_steps")
+        state[key] = json.dumps(stored)
+    torch.save(state, state_file)
+    assert _trainer(tiny_data, run).fit(resume=True)[-1]["epoch"] == 2
+    pooled = dataclasses.replace(TINY_MODEL, pool_window=16)
+    with pytest.raises(ValueError, match=r"differs in \['pool_window'\]"):
+        Trainer(tiny_data, run, pooled, TrainConfig(epochs=2, batch_size=2, lr=1e-3,
+                                                   patches_per_epoch=4, val_patches=4),
+                progress=False).fit(resume=True)
 
 
 def test_too_few_patches_for_a_batch(tiny_data, tmp_path):

@@ -61,6 +61,19 @@ LATEST = "latest.json"
 BEST = "best.safetensors"
 
 
+def _with_defaults(config: Any, stored: dict[str, Any]) -> dict[str, Any]:
+    """A checkpoint's stored configuration over the defaults of ``config``'s fields.
+
+    A field added after the checkpoint was written compares at its default, which is the
+    behaviour the checkpoint was trained with (new fields default to the old behaviour).
+    """
+    defaults = {f.name: f.default for f in dataclasses.fields(config)
+                if f.default is not dataclasses.MISSING}
+    defaults.update({f.name: f.default_factory() for f in dataclasses.fields(config)
+                     if f.default_factory is not dataclasses.MISSING})
+    return json.loads(json.dumps({**defaults, **stored}))
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """Optimisation settings of one run.
@@ -469,15 +482,12 @@ class Trainer:
             raise FileNotFoundError(f"no checkpoint to resume from in {self.out / CHECKPOINTS}")
         folder = self.out / CHECKPOINTS
         state = torch.load(folder / latest["state"], map_location="cpu", weights_only=True)
-        stored = {"model_config": state["model_config"], "train_config": state["train_config"]}
-        current = {"model_config": self.model_config.to_json(),
-                   "train_config": json.dumps(self.config.to_dict())}
-        for key in stored:
-            if json.loads(stored[key]) != json.loads(current[key]):
-                differing = sorted(
-                    k for k, v in json.loads(current[key]).items()
-                    if json.loads(stored[key]).get(k) != v
-                )
+        for key, config in (("model_config", self.model_config), ("train_config", self.config)):
+            stored = _with_defaults(config, json.loads(state[key]))
+            current = json.loads(json.dumps(config.to_dict()))
+            if stored != current:
+                differing = sorted(k for k in {**stored, **current}
+                                   if stored.get(k) != current.get(k))
                 raise ValueError(f"the checkpoint in {folder} was written with another "
                                  f"{key.replace('_', ' ')} (differs in {differing}); resume "
                                  "with the original settings or start a new run folder")
