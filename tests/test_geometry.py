@@ -3,7 +3,10 @@ import pytest
 import torch
 
 from svcode_core.physics.geometry import (
+    CONTEXT_SHIFTS,
+    context_views,
     extract_sub_views,
+    lens_pitch,
     normalized_coordinates,
     pad_sensor_frame,
     sub_view_origins,
@@ -46,3 +49,25 @@ def test_wrong_frame_shape_raises(tiny_system):
         extract_sub_views(torch.zeros(10, 10), tiny_system)
     with pytest.raises(ValueError, match="raw sensor frame"):
         pad_sensor_frame(torch.zeros(10, 10), tiny_system)
+
+
+def test_context_views_are_the_sub_views_moved_by_a_pitch(mini_system):
+    """Against numpy slicing of one large zero-padded frame, pixel by pixel."""
+    frame = torch.rand(mini_system.padded_shape, generator=torch.Generator().manual_seed(0))
+    pitch = lens_pitch(mini_system)
+    assert pitch == (144, 144)
+    big = 1000  # wider than every crop can reach
+    padded = np.pad(frame.numpy(), big)
+    origin, size = (40, 250), 96
+    context = context_views(frame, mini_system, origin, size)
+    assert context.shape == (81, size, size)
+    for lens, (r0, c0) in enumerate(sub_view_origins(mini_system)):
+        for k, (dr, dc) in enumerate(CONTEXT_SHIFTS):
+            r = big + r0 + origin[0] + dr * pitch[0]
+            c = big + c0 + origin[1] + dc * pitch[1]
+            np.testing.assert_array_equal(context[9 * lens + k].numpy(),
+                                          padded[r : r + size, c : c + size])
+    whole = context_views(frame, mini_system)  # channel 9ℓ is lens ℓ's sub-view
+    assert torch.equal(whole[::9], extract_sub_views(frame, mini_system))
+    # the right lens column moved one pitch right leaves the padded frame partly: zeros
+    assert (whole[9 * 2 + 5, :, -144:] == 0).all()

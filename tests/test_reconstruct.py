@@ -214,3 +214,19 @@ def test_moved_chief_rays_cut_the_same_sub_views_for_the_same_model(tiny_system,
     np.testing.assert_allclose(result.views, expected.views, atol=1e-6)
     # the same frame cut at other rays is another input: the result changes
     assert not np.allclose(at_moved.reconstruct(frame).reconstruction, expected.reconstruction)
+
+
+def test_a_lens_context_model_gets_the_crops_a_pitch_away(tiny_system):
+    from svcode_core.network import ModelConfig, SVCoDe, with_lens_context
+    from svcode_core.physics.geometry import context_views
+
+    torch.manual_seed(0)
+    plain = SVCoDe(ModelConfig.mini())
+    frame = np.random.default_rng(0).random(tiny_system.sensor_shape, dtype=np.float32)
+    wide = Reconstructor(with_lens_context(plain), tiny_system)
+    crops = wide.prepare(frame)
+    padded = pad_sensor_frame(torch.from_numpy(frame), tiny_system)
+    np.testing.assert_array_equal(crops, context_views(padded, tiny_system).numpy())
+    # the new inputs start with zero weights: the same reconstruction as the plain model
+    expected = Reconstructor(plain, tiny_system)(frame).reconstruction
+    np.testing.assert_allclose(wide(frame).reconstruction, expected, rtol=1e-5, atol=1e-6)

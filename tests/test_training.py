@@ -14,7 +14,7 @@ from svcode_core.config import SystemConfig
 from svcode_core.methods.model_file import load_model
 from svcode_core.network import ModelConfig
 from svcode_core.physics.cm2 import CM2Operator
-from svcode_core.physics.geometry import extract_sub_views
+from svcode_core.physics.geometry import context_views, extract_sub_views
 from svcode_core.physics.simulate import Simulator
 from svcode_core.training import (
     DataRecipe,
@@ -168,6 +168,28 @@ def test_noise_is_fresh_and_only_on_the_sensor(tiny_data):
     val = PatchDataset(tiny_data, tiny_data.val_frames, fixed_noise=True, seed=1)
     assert torch.equal(val[3]["views"], val[3]["views"])
     assert not torch.equal(val[3]["views"], val[4]["views"])
+
+
+def test_lens_context_patches_share_one_noise_draw(tiny_data):
+    clean = PatchDataset(tiny_data, tiny_data.train_frames, noise=False)
+    context = PatchDataset(tiny_data, tiny_data.train_frames, noise=False, lens_context=True)
+    noisy = PatchDataset(tiny_data, tiny_data.train_frames, seed=1, lens_context=True)
+    system = tiny_data.system
+    p = system.patch_size
+    window = torch.zeros(system.padded_shape)
+    window[system.sensor_window] = 1
+    for index in (0, len(clean) // 2, len(clean) - 1):
+        off_sensor = context_views(window, system, tuple(clean.locate(index)[1]), p) == 0
+        views = context[index]["views"]
+        assert views.shape == (81, p, p)
+        torch.testing.assert_close(views[::9], clean[index]["views"])  # each lens's own crop
+        draw = noisy[(index, 7)]["views"]
+        assert torch.equal(draw, noisy[(index, 7)]["views"])
+        assert not torch.equal(draw, views)
+        # lens 0 moved one pitch right reads lens 1's sensor pixels (chief rays a pitch
+        # apart): the noise is drawn on the sensor, so both crops carry the same draw
+        assert torch.equal(draw[9 * 0 + 5], draw[9 * 1 + 0])
+        assert off_sensor.any() and torch.all(draw[off_sensor] == 0)  # padding: no noise
 
 
 def test_epoch_sampler_is_seeded_and_splits_ranks():

@@ -62,6 +62,18 @@ def test_train_from_initial_weights(tiny_system, tiny_model_config, tmp_path, ca
     assert main(args) == 0
     tuned, _ = load_model(tmp_path / "tuned" / "best.safetensors", tiny_system)
     assert tuned.model_config == config
+    # fine-tuning that adds the lens context starts from the same function
+    wide = Trainer(TrainingData(data), tmp_path / "wide", config.replace(lens_context=True),
+                   TrainConfig(epochs=1), init_weights=weights, progress=False).model.eval()
+    start, _ = load_model(weights, tiny_system)
+    views = torch.rand(2, 81, 16, 16)
+    with torch.no_grad():
+        torch.testing.assert_close(wide(views, [[0, 0], [8, 16]], 48)[1],
+                                   start.eval()(views[:, ::9], [[0, 0], [8, 16]], 48)[1])
+    assert main([*args[:4], str(tmp_path / "widened"), *args[5:], "--lens-context"]) == 0
+    widened, _ = load_model(tmp_path / "widened" / "best.safetensors", tiny_system)
+    assert widened.model_config == config.replace(lens_context=True)
+    assert main([*args, "--method", "fouriernet", "--lens-context"]) == 2
     assert main([*args, "--ablation", "no-pe"]) == 2
     assert "leave out --model-config and --ablation" in capsys.readouterr().err
     assert main([*args, "--method", "fouriernet"]) == 2

@@ -11,6 +11,7 @@ import torch
 from ..config import SystemConfig
 from ..methods.model_file import read_model_metadata
 from ..methods.registry import LEARNED_METHODS, TRAINABLE_METHODS, method
+from ..network import ModelConfig
 from ..pretrained import require_bundled_weights
 from ..training import TrainConfig, Trainer, TrainingData, init_distributed, shutdown_distributed
 from ..training.configs import ABLATIONS, AnyModelConfig, config_class, model_config_from
@@ -46,6 +47,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--init", metavar="WEIGHTS",
                         help="start from the weights of a model file, or 'pretrained' for the "
                         "bundled model (fine-tuning); the network configuration is the file's")
+    parser.add_argument("--lens-context", action="store_true",
+                        help="SV-CoDe: the demixing stage also sees each lens's crop moved by "
+                        "one lens pitch towards its neighbours (for the field's edge strips); "
+                        "with --init, the file's model gains these inputs with zero weights")
     parser.add_argument("--ablation", default="none", choices=sorted(ABLATIONS),
                         help="switch off the coordinate gate or the positional encoding")
     parser.add_argument("--epochs", type=int, default=defaults.epochs)
@@ -117,6 +122,11 @@ def run(args: argparse.Namespace) -> int:
                                              args.method)  # fmt: skip
         else:
             init, model_config = initial_weights(args, data.system)
+        if args.lens_context:
+            if not isinstance(model_config, ModelConfig):
+                raise ValueError(f"--lens-context applies to SV-CoDe, not to --method "
+                                 f"{args.method}")
+            model_config = model_config.replace(lens_context=True)
         trainer = Trainer(data, args.out, model_config, config, device=device, dist=dist,
                           progress=not args.no_progress, init_weights=init)
         trainer.fit(resume=args.resume)

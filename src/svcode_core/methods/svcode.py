@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from ..config import DEFAULT_MEMORY_BUDGET, SystemConfig
-from ..physics.geometry import extract_sub_views, pad_sensor_frame
+from ..physics.geometry import context_views, extract_sub_views, pad_sensor_frame
 from ..physics.noise import noise_floor
 from .base import (
     PRECISIONS,
@@ -274,11 +274,15 @@ class Reconstructor(BaseReconstructor):
 
     # ------------------------------------------------------------------ input
     def prepare(self, frame: np.ndarray, index: int = 0) -> np.ndarray:
-        """One raw frame → its nine sub-views ``(9, S, S)`` float32 (checked, clipped at 0)."""
+        """One raw frame → its nine sub-views ``(9, S, S)`` float32 (checked, clipped at 0);
+        ``(81, S, S)`` with each lens's context crops for a model with
+        :attr:`~svcode_core.network.ModelConfig.lens_context`."""
         values = finite_frame(frame, index)
         values = np.maximum(values, 0.0)
         padded = pad_sensor_frame(torch.from_numpy(values), self.system)
-        return np.ascontiguousarray(extract_sub_views(padded, self.system).numpy())
+        config = getattr(self.model, "model_config", None)
+        crop = context_views if getattr(config, "lens_context", False) else extract_sub_views
+        return np.ascontiguousarray(crop(padded, self.system).numpy())
 
     # ------------------------------------------------------------------ model
     def _autocast(self) -> contextlib.AbstractContextManager:

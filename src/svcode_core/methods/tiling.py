@@ -167,7 +167,8 @@ def tiles_with_signal(views: np.ndarray, grid: TileGrid, threshold: float) -> np
     Parameters
     ----------
     views : numpy.ndarray
-        The nine sub-views of one frame, ``(9, S, S)``.
+        The nine sub-views of one frame, ``(9, S, S)``, or ``(9 · k, S, S)`` lens-major
+        with context crops (only each lens's own crop is looked at).
     grid : TileGrid
     threshold : float
         Level above which a smoothed pixel counts as signal (see the module docstring).
@@ -179,7 +180,7 @@ def tiles_with_signal(views: np.ndarray, grid: TileGrid, threshold: float) -> np
     """
     _check_views(views, grid)
     peak = np.full(views.shape[-2:], -np.inf, dtype=np.float32)
-    for view in views:  # one view at a time: two S × S arrays, not nine
+    for view in views[:: len(views) // N_LENSES]:  # one at a time: two S × S arrays, not nine
         np.maximum(peak, uniform_filter(view, size=3, mode="nearest"), out=peak)
     p = grid.patch
     return np.array([peak[r : r + p, c : c + p].max() > threshold for r, c in grid.origins])
@@ -216,10 +217,13 @@ class TiledOutput:
 
 
 def _check_views(views: np.ndarray, grid: TileGrid) -> None:
-    expected = (N_LENSES, grid.size, grid.size)
-    if not isinstance(views, np.ndarray) or views.shape != expected:
-        shape = getattr(views, "shape", type(views).__name__)
-        raise ValueError(f"sub-views must be a NumPy array of shape {expected}, got {shape}")
+    """``(9 · k, S, S)``: the nine sub-views (``k = 1``) or, lens-major, each with its
+    context crops (``k = 9``, :func:`~svcode_core.physics.geometry.context_views`)."""
+    shape = getattr(views, "shape", type(views).__name__)
+    if (not isinstance(views, np.ndarray) or views.ndim != 3 or views.shape[0] % N_LENSES
+            or not views.shape[0] or views.shape[1:] != (grid.size, grid.size)):
+        raise ValueError(f"sub-views must be a NumPy array of shape ({N_LENSES}, {grid.size}, "
+                         f"{grid.size}) (or 9·k channels, lens-major), got {shape}")
 
 
 def iter_tiled(
@@ -236,9 +240,9 @@ def iter_tiled(
     Parameters
     ----------
     run_batch : callable
-        ``(tiles (B, 9, P, P), origins (B, 2)) -> (demixed or None, reconstruction)``.
+        ``(tiles (B, 9 · k, P, P), origins (B, 2)) -> (demixed or None, reconstruction)``.
     views : numpy.ndarray
-        ``(9, S, S)`` float32 sub-views.
+        ``(9, S, S)`` float32 sub-views (or ``(9 · k, S, S)``, see :func:`tiles_with_signal`).
     grid : TileGrid
     batch_size : int
         Tiles per call of ``run_batch``.
@@ -277,7 +281,7 @@ def iter_tiled(
     weight = np.zeros((size, size), dtype=np.float32)
     recon = np.zeros((size, size), dtype=np.float32)
     demixed = np.zeros((N_LENSES, size, size), dtype=np.float32) if return_views else None
-    tiles = np.empty((min(batch_size, max(len(todo), 1)), N_LENSES, p, p), dtype=np.float32)
+    tiles = np.empty((min(batch_size, max(len(todo), 1)), len(views), p, p), dtype=np.float32)
     model_seconds = 0.0
 
     for first in range(0, len(todo), batch_size):

@@ -7,7 +7,7 @@ from .blocks import CoDeBlock, LayerNorm2d, SimpleChannelAttention, SimpleGate, 
 from .config import PE_SCHEMES, ModelConfig
 from .coordgate import CoordGate, CoordGrid, CoordMLP, MaskCache
 from .encoding import encoding_size, frequencies, level_coordinates, positional_encoding
-from .models import DemixNet, MaskLayer, ReconNet, SVCoDe, UNet
+from .models import DemixNet, MaskLayer, ReconNet, SVCoDe, UNet, with_lens_context
 
 __all__ = [
     "PE_SCHEMES",
@@ -30,4 +30,5 @@ __all__ = [
     "frequencies",
     "level_coordinates",
     "positional_encoding",
+    "with_lens_context",
 ]

@@ -114,6 +114,13 @@ class ModelConfig(BlockConfig):
         (:func:`~.blocks.pooled_mean`). On patches of at most ``P`` pixels both are the same,
         so this is an inference setting that training leaves alone. Model files written
         before this option existed load with ``0``, as they ran.
+    lens_context : bool
+        ``True``: the demixing stage sees, beside each lens's sub-view, the same crop moved
+        by one lens pitch towards each of its eight neighbours
+        (:func:`~svcode_core.physics.geometry.context_views`; nine inputs per lens, 81
+        channels), so a tile also holds the readings that the field's edge strips need and
+        that lie a pitch away, beyond the patch. ``False``: the nine sub-views. Model files
+        written before this option existed load with ``False``.
     output : {"sigmoid", "linear"}
         Output activation of both stages. ``"sigmoid"`` is the published design.
         ``"linear"`` leaves the last convolution unbounded while training and clamps it
@@ -139,6 +146,7 @@ class ModelConfig(BlockConfig):
     output: str = "sigmoid"
     mask_spacing: int = 0
     pool_window: int = 0
+    lens_context: bool = False
 
     block_lists = ("demix_enc_blocks", "demix_dec_blocks", "recon_enc_blocks",
                    "recon_dec_blocks")  # fmt: skip
@@ -166,6 +174,11 @@ class ModelConfig(BlockConfig):
             output="linear",
             mask_spacing=8,
         ).validate()
+
+    @property
+    def views_per_lens(self) -> int:
+        """Input crops per lens of the demixing stage: 9 with :attr:`lens_context`, else 1."""
+        return 9 if self.lens_context else 1
 
     def replace(self, **changes: Any) -> ModelConfig:
         """A validated copy with some fields changed."""
@@ -195,7 +208,8 @@ class ModelConfig(BlockConfig):
             raise ConfigError(f"pe_scheme: must be one of {PE_SCHEMES}, got {self.pe_scheme!r}")
         if self.output not in OUTPUTS:
             raise ConfigError(f"output: must be one of {OUTPUTS}, got {self.output!r}")
-        for name in ("coord_gate", "positional_encoding", "lens_specific_first_block"):
+        for name in ("coord_gate", "positional_encoding", "lens_specific_first_block",
+                     "lens_context"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"{name}: must be true or false, got {getattr(self, name)!r}")
         return self

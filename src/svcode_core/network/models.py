@@ -1,6 +1,7 @@
 """The SV-CoDe models: the shared U-Net, Demixing-Net, Recon-Net and the joint SVCoDe.
 
-Every model takes the nine stacked sub-view tiles ``(B, 9, H, W)``, the integer
+Every model takes the nine stacked sub-view tiles ``(B, 9, H, W)`` (``(B, 81, H, W)``,
+lens-major, for a demixing stage with ``ModelConfig.lens_context``), the integer
 ``(row, col)`` origin of each tile inside its ``S × S`` sub-view and ``S``. Pixel
 coordinates are global: pixel ``(i, j)`` of a tile sits at ``2(origin + (i, j))/(S-1) - 1``.
 Inputs of any size are zero-padded at the bottom and right to a multiple of the U-Net
@@ -27,7 +28,7 @@ from .coordgate import CoordGate, CoordGrid, MaskCache, MaskField
 from .encoding import encoding_size, level_coordinates, positional_encoding
 from .lattice import interpolate, lattice_axis
 
-__all__ = ["DemixNet", "MaskLayer", "ReconNet", "SVCoDe", "UNet"]
+__all__ = ["DemixNet", "MaskLayer", "ReconNet", "SVCoDe", "UNet", "with_lens_context"]
 
 DEFAULT_CACHE_BYTES = DEFAULT_MEMORY_BUDGET
 
@@ -136,7 +137,8 @@ class _ViewNet(nn.Module):
         hidden = config.mlp_hidden if config.coord_gate else None
         features = encoding_size(config.pe_bands, config.positional_encoding)
         lenses = N_LENSES if config.lens_specific_first_block else 1
-        self.intro = nn.Conv2d(1, config.view_width, 3, padding=1)
+        self.views_per_lens = config.views_per_lens if self.stage == "demix" else 1
+        self.intro = nn.Conv2d(self.views_per_lens, config.view_width, 3, padding=1)
         self.view_block = CoDeBlock(config.view_width, features, hidden, lenses)
         self.fusion = ViewFusion(N_LENSES, config.view_width, config.width)
         self.unet = UNet(config, enc_blocks, middle_blocks, dec_blocks)
@@ -157,12 +159,13 @@ class _ViewNet(nn.Module):
         return self.unet.levels
 
     def run(self, views: torch.Tensor, grids: Sequence[CoordGrid | None]) -> torch.Tensor:
-        """Network on padded views ``(B, 9, H, W)``; ``grids[k]`` for level ``k``."""
-        batch, lenses, h, w = views.shape
+        """Network on padded views ``(B, 9 · views_per_lens, H, W)``; ``grids[k]`` for
+        level ``k``."""
+        batch, _, h, w = views.shape
         # the view block's few channels per lens run channels first (see LayerNorm2d)
-        x = self.intro(views.reshape(batch * lenses, 1, h, w).contiguous())
+        x = self.intro(views.reshape(batch * N_LENSES, self.views_per_lens, h, w).contiguous())
         x = self.view_block(x, grids[0])
-        x = self.fusion(_channels_last(x.reshape(batch, lenses * x.shape[1], h, w)))
+        x = self.fusion(_channels_last(x.reshape(batch, N_LENSES * x.shape[1], h, w)))
         out = self.ending(self.unet(x, grids))
         if self.config.output == "sigmoid":
             return torch.sigmoid(out)
@@ -411,9 +414,10 @@ class _MaskedModel(nn.Module):
         self, views: torch.Tensor, origins: torch.Tensor | Sequence, sub_view_size: int, levels: int
     ) -> tuple[torch.Tensor, list[CoordGrid | None]]:
         """Validate, pad to a multiple of ``2**levels`` and build the coordinate grids."""
-        if not isinstance(views, torch.Tensor) or views.ndim != 4 or views.shape[1] != N_LENSES:
+        channels = N_LENSES * self._stages()[0].views_per_lens
+        if not isinstance(views, torch.Tensor) or views.ndim != 4 or views.shape[1] != channels:
             shape = tuple(views.shape) if isinstance(views, torch.Tensor) else type(views).__name__
-            raise ValueError(f"views must have shape (B, {N_LENSES}, H, W), got {shape}")
+            raise ValueError(f"views must have shape (B, {channels}, H, W), got {shape}")
         if not views.is_floating_point():
             raise ValueError(f"views must be floating point, got {views.dtype}")
         if not torch.isfinite(views).all():
@@ -578,10 +582,39 @@ class SVCoDe(_MaskedModel):
     def forward(
         self, views: torch.Tensor, origins: torch.Tensor | Sequence, sub_view_size: int
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(demixed (B, 9, H, W), reconstruction (B, 1, H, W))``, both in ``(0, 1)``."""
+        """``(demixed (B, 9, H, W), reconstruction (B, 1, H, W))`` from ``views`` ``(B, 9,
+        H, W)`` (``(B, 81, H, W)`` with ``lens_context``)."""
         levels = self._levels()
         padded, grids = self._prepare(views, origins, sub_view_size, levels)
         demixed = self.demix.run(padded, grids)
         recon = self.recon.run(demixed, grids)
         h, w = views.shape[-2:]
         return demixed[..., :h, :w], recon[..., :h, :w]
+
+
+def with_lens_context(model: SVCoDe) -> SVCoDe:
+    """A copy of ``model`` whose demixing stage also takes the crops a lens pitch away
+    (:attr:`ModelConfig.lens_context`), computing exactly what ``model`` computes until it
+    is trained further: the new inputs enter with zero weights. The starting point for
+    fine-tuning a model without lens context.
+
+    Examples
+    --------
+    >>> plain = SVCoDe(ModelConfig.mini()).eval()
+    >>> wide = with_lens_context(plain).eval()
+    >>> views = torch.rand(1, 81, 16, 16)
+    >>> with torch.no_grad():
+    ...     same = plain(views[:, ::9], [[0, 0]], 384)[1].equal(wide(views, [[0, 0]], 384)[1])
+    >>> same
+    True
+    """
+    if model.model_config.lens_context:
+        raise ValueError("the model already has lens context")
+    wide = SVCoDe(model.model_config.replace(lens_context=True))
+    state = model.state_dict()
+    narrow = state["demix.intro.weight"]
+    weight = narrow.new_zeros(narrow.shape[0], wide.demix.views_per_lens, *narrow.shape[2:])
+    weight[:, :1] = narrow  # context shift (0, 0), the lens's own sub-view, comes first
+    state["demix.intro.weight"] = weight
+    wide.load_state_dict(state)
+    return wide.to(next(model.parameters()).device)

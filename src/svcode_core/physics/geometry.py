@@ -14,14 +14,21 @@ import torch
 from ..config import N_LENSES, SystemConfig
 
 __all__ = [
+    "CONTEXT_SHIFTS",
     "assemble_frame",
+    "context_views",
     "crop_to_sensor",
     "extract_sub_views",
+    "lens_pitch",
     "normalized_coordinates",
     "pad_sensor_frame",
     "place_sub_views",
     "sub_view_origins",
 ]
+
+CONTEXT_SHIFTS = ((0, 0), (-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
+"""Shifts of a lens's crop in lens pitches for :func:`context_views`: itself first, then its
+eight neighbours' places, row-major."""
 
 
 def normalized_coordinates(
@@ -114,14 +121,70 @@ def extract_sub_views(frame: torch.Tensor, config: SystemConfig, margin: int = 0
         Shape ``(..., 9, S + 2·margin, S + 2·margin)``; view ``ℓ`` is centred on ``c_ℓ``.
     """
     _check_frame(frame, config.padded_shape, "padded sensor frame")
-    size = config.sub_view_size + 2 * margin
-    rows, cols = config.padded_shape
-    views = frame.new_zeros(*frame.shape[:-2], N_LENSES, size, size)
-    for lens, (r0, c0) in enumerate(sub_view_origins(config) - margin):
+    return _crops(frame, sub_view_origins(config) - margin, config.sub_view_size + 2 * margin)
+
+
+def _crops(frame: torch.Tensor, corners: np.ndarray, size: int) -> torch.Tensor:
+    """``size``-square crops of a padded frame at the top-left ``corners`` ``(n, 2)``,
+    zero where they leave the frame; shape ``(..., n, size, size)``."""
+    rows, cols = frame.shape[-2:]
+    crops = frame.new_zeros(*frame.shape[:-2], len(corners), size, size)
+    for index, (r0, c0) in enumerate(corners):
         fr0, fr1, vr0, vr1 = _overlap(int(r0), size, rows)
         fc0, fc1, vc0, vc1 = _overlap(int(c0), size, cols)
-        views[..., lens, vr0:vr1, vc0:vc1] = frame[..., fr0:fr1, fc0:fc1]
-    return views
+        crops[..., index, vr0:vr1, vc0:vc1] = frame[..., fr0:fr1, fc0:fc1]
+    return crops
+
+
+def lens_pitch(config: SystemConfig) -> tuple[int, int]:
+    """Spacing of the lenses' chief rays along rows and columns, in sensor pixels (the
+    mean over the 3 × 3 grid, rounded).
+
+    Examples
+    --------
+    >>> lens_pitch(SystemConfig.preset("cm2-mini"))
+    (144, 144)
+    """
+    rays = np.asarray(config.chief_rays, dtype=np.float64).reshape(3, 3, 2)
+    rows = (rays[2, :, 0] - rays[0, :, 0]).mean() / 2
+    cols = (rays[:, 2, 1] - rays[:, 0, 1]).mean() / 2
+    return round(rows), round(cols)
+
+
+def context_views(
+    frame: torch.Tensor, config: SystemConfig, origin: tuple[int, int] = (0, 0),
+    size: int | None = None,
+) -> torch.Tensor:
+    """Each lens's crop of a padded frame and the same crop moved by one lens pitch
+    towards each of its eight neighbours (:data:`CONTEXT_SHIFTS`).
+
+    The readings a pitch away carry what one position of the nine sub-views leaves open
+    where some lenses' images fall off the sensor: at the field's left edge the lenses'
+    sums at column ``u`` mix ``O(u)``, ``O(u + pitch)`` and ``O(u + 2·pitch)``, and the
+    right lenses' reading at ``u + pitch`` is the third equation. The centre crop of lens
+    ``ℓ`` (channel ``9ℓ``) is its sub-view, as from :func:`extract_sub_views`.
+
+    Parameters
+    ----------
+    frame : torch.Tensor
+        Padded sensor frame(s), shape ``(..., H_pad, W_pad)``.
+    config : SystemConfig
+    origin : (int, int)
+        Top-left corner of the crops in sub-view pixels (a tile's origin).
+    size : int, optional
+        Side of the crops; default the sub-view ``S``.
+
+    Returns
+    -------
+    torch.Tensor
+        Shape ``(..., 81, size, size)``, lens-major: channel ``9ℓ + k`` is lens ``ℓ``
+        shifted by ``CONTEXT_SHIFTS[k]`` pitches; zero outside the padded frame.
+    """
+    _check_frame(frame, config.padded_shape, "padded sensor frame")
+    pitch = np.asarray(lens_pitch(config))
+    shifts = np.asarray(CONTEXT_SHIFTS) * pitch
+    corners = (sub_view_origins(config)[:, None] + np.asarray(origin) + shifts).reshape(-1, 2)
+    return _crops(frame, corners, config.sub_view_size if size is None else size)
 
 
 def place_sub_views(views: torch.Tensor, config: SystemConfig, margin: int = 0) -> torch.Tensor:

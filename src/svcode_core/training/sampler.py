@@ -26,7 +26,13 @@ import torch
 
 from ..config import SystemConfig
 from ..methods.tiling import TileGrid
-from ..physics.geometry import assemble_frame, crop_to_sensor, extract_sub_views, pad_sensor_frame
+from ..physics.geometry import (
+    assemble_frame,
+    context_views,
+    crop_to_sensor,
+    extract_sub_views,
+    pad_sensor_frame,
+)
 from .dataset import TrainingData
 
 __all__ = [
@@ -103,6 +109,18 @@ class _NoisySamples(torch.utils.data.Dataset):
             return index, torch.Generator().manual_seed(derive_seed(self.seed, 1, index))
         return index, self._generator
 
+    def padded_frame(self, frame: int, generator: torch.Generator) -> torch.Tensor:
+        """Frame ``frame``'s padded sensor frame, rebuilt from its stored sub-views
+        (:func:`~svcode_core.physics.geometry.assemble_frame`), with the sensor model
+        applied to the sensor window only, as :class:`~svcode_core.physics.simulate.Simulator`
+        does (unless ``noise`` is off)."""
+        padded = assemble_frame(torch.from_numpy(np.array(self.data.views[frame])), self.system)
+        if not self.noise:
+            return padded
+        sensor = crop_to_sensor(padded, self.system)
+        sensor = self.data.frame_sensor(frame).read(sensor, generator)
+        return pad_sensor_frame(sensor, self.system)
+
 
 class PatchDataset(_NoisySamples):
     """All patches of some frames of a :class:`TrainingData`, with noise drawn on access.
@@ -119,6 +137,11 @@ class PatchDataset(_NoisySamples):
         Base seed of the noise.
     noise : bool
         ``False`` returns the noiseless views (for checks).
+    lens_context : bool
+        ``views`` holds each lens's crop and the crops one lens pitch away, ``(81, P, P)``
+        (:func:`~svcode_core.physics.geometry.context_views`), for a model with
+        :attr:`~svcode_core.network.ModelConfig.lens_context`. These crops share sensor
+        pixels, so the noise is drawn once on the whole sensor frame.
 
     Notes
     -----
@@ -135,15 +158,17 @@ class PatchDataset(_NoisySamples):
         fixed_noise: bool = False,
         seed: int = 0,
         noise: bool = True,
+        lens_context: bool = False,
     ) -> None:
         super().__init__(data, frames, fixed_noise, seed, noise)
         system = data.system
-        self.patch = system.patch_size
-        check_disjoint_view_patches(system, self.patch)
+        self.patch, self.lens_context = system.patch_size, lens_context
         self.origins = TileGrid(system.sub_view_size, self.patch, system.patch_stride).origins
-        window = torch.zeros(system.padded_shape)
-        window[system.sensor_window] = 1
-        self.sensor_mask = extract_sub_views(window, system).numpy().astype(bool)  # (9, S, S)
+        if not lens_context:  # noise per view crop: needs crops without shared pixels
+            check_disjoint_view_patches(system, self.patch)
+            window = torch.zeros(system.padded_shape)
+            window[system.sensor_window] = 1
+            self.sensor_mask = extract_sub_views(window, system).numpy().astype(bool)
 
     def __len__(self) -> int:
         return len(self.frames) * len(self.origins)
@@ -159,12 +184,14 @@ class PatchDataset(_NoisySamples):
         index, generator = self._resolve(key)
         frame, (r, c) = self.locate(index)
         crop = (slice(r, r + self.patch), slice(c, c + self.patch))
-        clean = torch.from_numpy(np.array(self.data.views[frame][(slice(None), *crop)]))
-        if self.noise:
-            inside = torch.from_numpy(self.sensor_mask[(slice(None), *crop)])
-            views = self.data.frame_sensor(frame).read(clean, generator) * inside
+        if self.lens_context:
+            padded = self.padded_frame(frame, generator)
+            views = context_views(padded, self.system, (int(r), int(c)), self.patch)
         else:
-            views = clean
+            views = torch.from_numpy(np.array(self.data.views[frame][(slice(None), *crop)]))
+            if self.noise:
+                inside = torch.from_numpy(self.sensor_mask[(slice(None), *crop)])
+                views = self.data.frame_sensor(frame).read(views, generator) * inside
         return {
             "views": views,
             "demixed": torch.from_numpy(np.array(self.data.demixed[frame][(slice(None), *crop)])),
@@ -198,13 +225,8 @@ class FrameDataset(_NoisySamples):
         if not 0 <= index < len(self):
             raise IndexError(f"frame index {index} out of range [0, {len(self)})")
         frame = self.frames[index]
-        padded = assemble_frame(torch.from_numpy(np.array(self.data.views[frame])), self.system)
-        if self.noise:
-            sensor = crop_to_sensor(padded, self.system)
-            sensor = self.data.frame_sensor(frame).read(sensor, generator)
-            padded = pad_sensor_frame(sensor, self.system)
         return {
-            "frame": padded,
+            "frame": self.padded_frame(frame, generator),
             "object": torch.from_numpy(np.array(self.data.objects[frame]))[None],
             "index": index,
         }

@@ -63,7 +63,8 @@ class PatchTask:
         self, data: TrainingData, frames: Sequence[int], fixed_noise: bool, seed: int
     ) -> PatchDataset:
         """The samples of ``frames``."""
-        return PatchDataset(data, frames, fixed_noise=fixed_noise, seed=seed)
+        return PatchDataset(data, frames, fixed_noise=fixed_noise, seed=seed,
+                            lens_context=self.config.lens_context)
 
     def origins(self, dataset: PatchDataset) -> int:
         """Distinct sample origins per frame (patches at one origin share their masks)."""

@@ -47,7 +47,7 @@ from ..config import ConfigError, check_int, check_number
 from ..io import atomic_path, write_text_atomic
 from ..methods.learned import FourierNetConfig, MultiWienerConfig
 from ..methods.model_file import load_model, save_model
-from ..network import ModelConfig
+from ..network import ModelConfig, SVCoDe, with_lens_context
 from .dataset import TrainingData
 from .distributed import DistInfo, all_reduce_sum, barrier
 from .loss import joint_loss, psnr_per_sample, ssim_per_sample
@@ -454,6 +454,10 @@ class Trainer:
 
     def _load_initial_weights(self, path: Path) -> None:
         source, _ = load_model(path)
+        config = self.model_config
+        if (isinstance(config, ModelConfig) and config.lens_context and isinstance(source, SVCoDe)
+                and source.model_config == config.replace(lens_context=False)):
+            source = with_lens_context(source)  # fine-tuning that adds the lens context
         if type(source) is not type(self.model) or source.model_config != self.model_config:
             raise ValueError(f"{path}: a {type(source).__name__} model of another network "
                              f"configuration than this run's {type(self.model).__name__}")
