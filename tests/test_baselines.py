@@ -377,6 +377,10 @@ def test_benchmark_labels_and_scores_an_ablation_model(tiny_system, tiny_op, tin
     config = tiny_model_config.replace(coord_gate=False)
     path = save_model(tmp_path / "no-gate.safetensors", SVCoDe(config), tiny_system)
     assert model_label(path) == "SV-CoDe (no CoordGate)"
+    wide = save_model(tmp_path / "wide.safetensors",
+                      SVCoDe(config.replace(positional_encoding=False, lens_context=True)),
+                      tiny_system)
+    assert model_label(wide) == "SV-CoDe (no CoordGate, no PE, lens context)"
     truth = disc_object(tiny_system.sub_view_size).numpy()
     scenes = [Scene("disc", truth, tiny_op.measure(torch.from_numpy(truth)).numpy())]
     (row,) = svcode_rows(path, tiny_system, scenes, all_knobs=False)

@@ -262,11 +262,14 @@ def admm_default_row(operator: CM2Operator, scenes: list[Scene]) -> Row:
 
 
 def model_label(weights: Path) -> str:
-    """``SV-CoDe``, or ``SV-CoDe (no CoordGate, no PE)`` for a model with ablations."""
+    """``SV-CoDe``, or e.g. ``SV-CoDe (no CoordGate, no PE)`` for a model with ablations,
+    ``SV-CoDe (lens context)`` for one with
+    :attr:`~svcode_core.network.ModelConfig.lens_context`."""
     config = read_model_metadata(weights)["model_config"]
-    off = [name for name, on in (("CoordGate", config.coord_gate),
-                                 ("PE", config.positional_encoding)) if not on]  # fmt: skip
-    return "SV-CoDe" + (f" (no {', no '.join(off)})" if off else "")
+    notes = [f"no {name}" for name, on in (("CoordGate", config.coord_gate),
+                                           ("PE", config.positional_encoding)) if not on]
+    notes += ["lens context"] if config.lens_context else []
+    return "SV-CoDe" + (f" ({', '.join(notes)})" if notes else "")
 
 
 def _score_reconstructor(row: Row, reconstructor: Any, scenes: list[Scene]) -> Row:
