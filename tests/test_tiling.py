@@ -11,6 +11,7 @@ from svcode_core.methods.tiling import (
     Cancelled,
     TileGrid,
     blend_window,
+    box_mean_3x3,
     exhaust,
     iter_tiled,
     tile_starts,
@@ -213,3 +214,18 @@ def test_bad_views_and_model_outputs_raise(views):
         exhaust(iter_tiled(lambda t, o: (t, t[:, :1] * np.nan), views, grid))
     with pytest.raises(ValueError, match="batch_size"):
         exhaust(iter_tiled(identity, views, grid, 0))
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_box_mean_matches_scipy(dtype):
+    """Against scipy.ndimage.uniform_filter (mode "nearest"). SciPy keeps a running sum
+    along each axis (one rounding of a value up to 3·max per step), so the two agree to
+    about (steps along both axes + the few of the direct sum) rounding units of the max."""
+    from scipy.ndimage import uniform_filter
+
+    image = np.random.default_rng(0).random((37, 52)).astype(dtype) * 1e3
+    expected = uniform_filter(image, size=3, mode="nearest")
+    mine = box_mean_3x3(image)
+    assert mine.dtype == dtype
+    bound = (sum(image.shape) + 10) * np.finfo(dtype).eps * image.max()
+    np.testing.assert_allclose(mine, expected, rtol=0, atol=bound)
