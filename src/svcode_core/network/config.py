@@ -118,9 +118,10 @@ class ModelConfig(BlockConfig):
         ``True``: the demixing stage sees, beside each lens's sub-view, the same crop moved
         by one lens pitch towards each of its eight neighbours
         (:func:`~svcode_core.physics.geometry.context_views`; nine inputs per lens, 81
-        channels), so a tile also holds the readings that the field's edge strips need and
-        that lie a pitch away, beyond the patch. ``False``: the nine sub-views. Model files
-        written before this option existed load with ``False``.
+        channels, combined by a first convolution of each lens's own), so a tile also holds
+        the readings that the field's edge strips need and that lie a pitch away, beyond
+        the patch. ``False``: the nine sub-views, one first convolution shared by them.
+        Model files written before this option existed load with ``False``.
     output : {"sigmoid", "linear"}
         Output activation of both stages. ``"sigmoid"`` is the published design.
         ``"linear"`` leaves the last convolution unbounded while training and clamps it
