@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import pytest
 import torch
 
@@ -23,9 +25,13 @@ def test_dataset_then_train(tiny_system, tiny_model_config, tmp_path, capsys):
     args = ["train", "--data", str(data), "--out", str(run), "--epochs", "1",
             "--model-config", str(model_file), "--ablation", "no-pe", "--batch-size", "2",
             "--patches-per-epoch", "2", "--val-patches", "2", "--device", "cpu",
-            "--no-progress"]
+            "--mse-weight", "30", "--no-progress"]
     assert main(args) == 0
     assert "validation reconstruction PSNR" in capsys.readouterr().out
+    state = torch.load(run / "checkpoints" / "epoch-0001.pt", weights_only=True)
+    assert json.loads(state["train_config"])["beta"] == 30.0
+    assert main([*args, "--ssim-weight", "-1"]) == 2
+    assert "alpha" in capsys.readouterr().err
     model, system = load_model(run / "best.safetensors", tiny_system)
     assert model.model_config.positional_encoding is False
     assert main([*args, "--resume"]) == 0  # nothing left to do, but it loads

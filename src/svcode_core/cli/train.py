@@ -63,6 +63,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="steps of linear learning-rate warm-up")
     parser.add_argument("--grad-clip", type=float, default=defaults.grad_clip,
                         help="maximum gradient norm")
+    parser.add_argument("--ssim-weight", type=float, default=defaults.alpha,
+                        help="weight of 1 - SSIM in each stage's loss")
+    parser.add_argument("--mse-weight", type=float, default=defaults.beta,
+                        help="weight of the MSE in each stage's loss (SSIM barely sees a "
+                        "region's brightness; a larger weight holds dim regions to it)")
     parser.add_argument("--patches-per-epoch", type=int,
                         help="training patches drawn per epoch (default: all)")
     parser.add_argument("--val-patches", type=int,
@@ -108,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
     config = TrainConfig(
         epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
         min_lr_ratio=args.min_lr_ratio, warmup_steps=args.warmup_steps, grad_clip=args.grad_clip,
+        alpha=args.ssim_weight, beta=args.mse_weight,
         patches_per_epoch=args.patches_per_epoch, val_patches=args.val_patches,
         seed=args.seed, workers=args.workers, same_origin=args.same_origin,
     )
