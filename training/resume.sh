@@ -1,0 +1,21 @@
+#!/usr/bin/env bash
+# What every cm2-mini recipe here does before training, in one place: regenerate the v2
+# data if it is missing (frame i depends only on the seed and i: the same 480 frames every
+# time, about 1 CPU-second each), restore a run's committed state into its run folder if
+# that folder holds none, then train, resuming from the latest checkpoint when there is one.
+# Usage (from the repository root): bash training/resume.sh RUN STATE [svcode train options]
+set -euo pipefail
+run="$1" state="$2"
+shift 2
+here="$(cd "$(dirname "$0")" && pwd)"
+# Threads that wait sleep instead of spinning: on a shared machine spinning cost a run up
+# to twice the CPU time per epoch.
+export OMP_WAIT_POLICY="${OMP_WAIT_POLICY:-PASSIVE}"
+svcode dataset --preset cm2-mini --frames 480 --out runs/data-v2 --seed 0 \
+  --departures "$here/cm2-mini-v2/departures.json" --no-progress
+if [ ! -f "$run/checkpoints/latest.json" ] && [ -f "$state/checkpoints/latest.json" ]; then
+  mkdir -p "$run" && cp -r "$state/." "$run/"
+fi
+resume=()
+[ -f "$run/checkpoints/latest.json" ] && resume=(--resume)
+svcode train --preset cm2-mini --data runs/data-v2 --out "$run" "$@" --no-progress "${resume[@]}"
