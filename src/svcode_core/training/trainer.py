@@ -68,9 +68,7 @@ def _with_defaults(config: Any, stored: dict[str, Any]) -> dict[str, Any]:
     behaviour the checkpoint was trained with (new fields default to the old behaviour).
     """
     defaults = {f.name: f.default for f in dataclasses.fields(config)
-                if f.default is not dataclasses.MISSING}
-    defaults.update({f.name: f.default_factory() for f in dataclasses.fields(config)
-                     if f.default_factory is not dataclasses.MISSING})
+                if f.default is not dataclasses.MISSING}  # no stored config has factories
     return json.loads(json.dumps({**defaults, **stored}))
 
 
