@@ -246,7 +246,9 @@ def test_train_command_trains_a_baseline(tiny_data, tmp_path, capsys):
     model, _ = load_model(run / "best.safetensors", tiny_data.system)
     assert isinstance(model, SVFourierNet)
     assert cli.main([*args, "--ablation", "no-pe"]) == 2
-    assert "applies to SV-CoDe" in capsys.readouterr().err
+    assert "--ablation applies to SV-CoDe" in capsys.readouterr().err
+    assert cli.main([*args, "--ablation", "no-pe", "--lens-context"]) == 2
+    assert "--ablation and --lens-context apply to SV-CoDe" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("method", sorted(BUILDERS))

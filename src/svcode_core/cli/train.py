@@ -11,10 +11,15 @@ import torch
 from ..config import SystemConfig
 from ..methods.model_file import read_model_metadata
 from ..methods.registry import LEARNED_METHODS, TRAINABLE_METHODS, method
-from ..network import ModelConfig
 from ..pretrained import require_bundled_weights
 from ..training import TrainConfig, Trainer, TrainingData, init_distributed, shutdown_distributed
-from ..training.configs import ABLATIONS, AnyModelConfig, config_class, model_config_from
+from ..training.configs import (
+    ABLATIONS,
+    AnyModelConfig,
+    config_class,
+    model_config_from,
+    with_svcode_options,
+)
 from . import add_system_arguments, chosen_system
 
 
@@ -125,14 +130,11 @@ def run(args: argparse.Namespace) -> int:
         init = None
         if args.init is None:
             model_config = model_config_from(args.model_config or "mini", args.ablation,
-                                             args.method)  # fmt: skip
+                                             args.method, args.lens_context)  # fmt: skip
         else:
             init, model_config = initial_weights(args, data.system)
-        if args.lens_context:
-            if not isinstance(model_config, ModelConfig):
-                raise ValueError(f"--lens-context applies to SV-CoDe, not to --method "
-                                 f"{args.method}")
-            model_config = model_config.replace(lens_context=True)
+            model_config = with_svcode_options(model_config, args.method,
+                                               lens_context=args.lens_context)
         trainer = Trainer(data, args.out, model_config, config, device=device, dist=dist,
                           progress=not args.no_progress, init_weights=init)
         trainer.fit(resume=args.resume)

@@ -14,7 +14,8 @@ from ..methods import registry
 from ..methods.learned import LEARNED_MODELS, FourierNetConfig, MultiWienerConfig
 from ..network import ModelConfig
 
-__all__ = ["ABLATIONS", "AnyModelConfig", "config_class", "model_config_from"]
+__all__ = ["ABLATIONS", "AnyModelConfig", "config_class", "model_config_from",
+           "with_svcode_options"]
 
 AnyModelConfig = ModelConfig | MultiWienerConfig | FourierNetConfig
 
@@ -42,9 +43,10 @@ def config_class(method: str) -> type:
     return ModelConfig
 
 
-def model_config_from(spec: str, ablation: str = "none", method: str = "svcode") -> AnyModelConfig:
+def model_config_from(spec: str, ablation: str = "none", method: str = "svcode",
+                      lens_context: bool = False) -> AnyModelConfig:
     """The configuration of ``method`` from ``"mini"``, ``"reference"`` (SV-CoDe only) or a
-    JSON file, with an ablation (SV-CoDe only).
+    JSON file, with the SV-CoDe options (:func:`with_svcode_options`).
 
     Examples
     --------
@@ -53,18 +55,39 @@ def model_config_from(spec: str, ablation: str = "none", method: str = "svcode")
     """
     cls = config_class(method)
     if cls is not ModelConfig:
-        if ablation != "none":
-            raise ValueError(f"--ablation applies to SV-CoDe, not to --method {method}")
         if spec == "mini":
-            return cls().validate()
-        path = _config_file(spec, "neither mini nor")
-        return cls.from_json(path.read_text(encoding="utf-8"))
-    if spec in ("mini", "reference"):
+            config = cls().validate()
+        else:
+            path = _config_file(spec, "neither mini nor")
+            config = cls.from_json(path.read_text(encoding="utf-8"))
+    elif spec in ("mini", "reference"):
         config = getattr(ModelConfig, spec)()
     else:
         path = _config_file(spec, "neither mini, reference nor")
         config = ModelConfig.from_json(path.read_text(encoding="utf-8"))
-    return config.replace(**ABLATIONS[ablation])
+    return with_svcode_options(config, method, ablation, lens_context)
+
+
+def with_svcode_options(config: AnyModelConfig, method: str, ablation: str = "none",
+                        lens_context: bool = False) -> AnyModelConfig:
+    """``config`` with an ablation (:data:`ABLATIONS`) and the lens context
+    (:attr:`~svcode_core.network.ModelConfig.lens_context`) applied; both belong to SV-CoDe
+    and are refused for the configuration of another method.
+
+    Examples
+    --------
+    >>> with_svcode_options(ModelConfig.mini(), "svcode", lens_context=True).lens_context
+    True
+    """
+    asked = [flag for flag, on in (("--ablation", ablation != "none"),
+                                   ("--lens-context", lens_context)) if on]
+    if not isinstance(config, ModelConfig):
+        if asked:
+            verb = "applies" if len(asked) == 1 else "apply"
+            raise ValueError(f"{' and '.join(asked)} {verb} to SV-CoDe, not to --method {method}")
+        return config
+    config = config.replace(**ABLATIONS[ablation])
+    return config.replace(lens_context=True) if lens_context else config
 
 
 def _config_file(spec: str, presets: str) -> Path:
