@@ -34,11 +34,19 @@ def _page_faults(mode: str, env: dict[str, str] | None = None) -> int:
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc only")
 def test_freed_blocks_are_reused_instead_of_paged_in_again():
     # by default each of four 128 MiB arrays is paged in again: at least 64 faults each
-    # even with 2 MiB pages (32768 with 4 KiB pages); kept, they come back without any,
-    # but for the odd one placed anew when another thread's block took the heap's top
+    # even with 2 MiB pages (32768 with 4 KiB pages); kept, they come back without any.
+    # On a loaded machine some runs fault again on one to all four kept arrays (seen with
+    # one thread and nothing else in the process: the cause is outside it), so the kept
+    # setting must get below a third of the default's faults in one of five runs; what
+    # happens outside the process only adds faults
     default = _page_faults("default")
     assert default >= 4 * 64
-    assert _page_faults("keep") <= default // 3
+    kept = []
+    for _ in range(5):
+        kept.append(_page_faults("keep"))
+        if kept[-1] <= default // 3:
+            break
+    assert min(kept) <= default // 3, (default, kept)
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc only")
