@@ -7,6 +7,8 @@
 #   context-mse       2 epochs, both
 #   mse-no-coordgate  the mse arm for the v2 ablations, so that they have the same budget
 #   mse-no-pe         as the model they are compared with
+#   mse-long          8 more epochs of the mse arm's model (lr 4e-4 after 100 warm-up steps,
+#                     MSE weight 100, other patches: seed 2): what a longer schedule buys
 # The v2 model is ../cm2-mini-v2/run/best.safetensors, its ablations'
 # ../cm2-mini-v2/ablations/<name>/best.safetensors.
 # Usage (from the repository root): bash training/cm2-mini-v3/finetune.sh ARM
@@ -20,9 +22,13 @@ case "$arm" in
   context-mse) extra=(--init "$v2/run/best.safetensors" --lens-context --mse-weight 100 --epochs 2);;
   mse-no-coordgate|mse-no-pe)
     extra=(--init "$v2/ablations/${arm#mse-}/best.safetensors" --mse-weight 100 --epochs 2);;
-  *) echo "finetune: context, mse, context-mse, mse-no-coordgate or mse-no-pe" >&2; exit 2;;
+  mse-long) extra=(--init "$here/mse/best.safetensors" --mse-weight 100 --epochs 8
+                  --lr 4e-4 --warmup-steps 100 --seed 2);;
+  *) echo "finetune: context, mse, context-mse, mse-no-coordgate, mse-no-pe or mse-long" >&2
+     exit 2;;
 esac
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
-bash "$here/../resume.sh" "runs/v3-$arm" "$here/$arm" "${extra[@]}" \
+# the arm's options come last: they override these
+bash "$here/../resume.sh" "runs/v3-$arm" "$here/$arm" \
   --batch-size 8 --same-origin 8 --lr 2e-4 --warmup-steps 50 \
-  --patches-per-epoch 3200 --val-patches 128 --seed 1
+  --patches-per-epoch 3200 --val-patches 128 --seed 1 "${extra[@]}"
