@@ -34,6 +34,7 @@ from scipy.signal import fftconvolve
 
 from svcode_core.config import SystemConfig
 from svcode_core.physics.cm2 import CM2Operator
+from svcode_core.physics.geometry import sensor_coverage
 
 RESULTS = Path(__file__).parent / "results"
 LENSES = (4, 0, 5)  # centre, a corner, an edge
@@ -95,13 +96,14 @@ def main() -> None:
     size, crop = system.sub_view_size, args.crop
     corners = {"centre": (size // 2 - crop // 2,) * 2, "top-left": (0, 0),
                "bottom-right": (size - crop,) * 2}
+    coverage = sensor_coverage(system)
     rows_out = []
     for lens in LENSES:
         for name in CROPS:
             r0, c0 = corners[name]
             rows, cols = slice(r0, r0 + crop), slice(c0, c0 + crop)
             reference = crop_reference(op, obj, lens, rows, cols)
-            inside = op._own_view_mask[lens, rows, cols].numpy() > 0
+            inside = coverage[lens, rows, cols].numpy() > 0
             got = targets[lens, rows, cols].astype(np.float64)
             scale = float(np.abs(reference[inside]).max()) if inside.any() else 0.0
             error = float(np.abs(got - reference)[inside].max()) / scale if scale else 0.0

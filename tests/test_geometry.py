@@ -9,6 +9,7 @@ from svcode_core.physics.geometry import (
     lens_pitch,
     normalized_coordinates,
     pad_sensor_frame,
+    sensor_coverage,
     sub_view_origins,
 )
 
@@ -71,3 +72,15 @@ def test_context_views_are_the_sub_views_moved_by_a_pitch(mini_system):
     assert torch.equal(whole[::9], extract_sub_views(frame, mini_system))
     # the right lens column moved one pitch right leaves the padded frame partly: zeros
     assert (whole[9 * 2 + 5, :, -144:] == 0).all()
+
+
+def test_sensor_coverage_is_the_sensor_window_seen_from_each_sub_view(mini_system):
+    coverage = sensor_coverage(mini_system, torch.float64)
+    rows, cols = mini_system.sensor_window
+    size = mini_system.sub_view_size
+    for lens, (r0, c0) in enumerate(sub_view_origins(mini_system)):
+        r, c = np.arange(r0, r0 + size), np.arange(c0, c0 + size)
+        on_rows, on_cols = (r >= rows.start) & (r < rows.stop), (c >= cols.start) & (c < cols.stop)
+        inside = on_rows[:, None] & on_cols[None, :]
+        np.testing.assert_array_equal(coverage[lens].numpy(), inside.astype(np.float64))
+    assert coverage.dtype == torch.float64

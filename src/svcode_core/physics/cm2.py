@@ -18,7 +18,13 @@ import numpy as np
 import torch
 
 from ..config import N_LENSES, SystemConfig
-from .geometry import crop_to_sensor, extract_sub_views, place_sub_views
+from .geometry import (
+    crop_to_sensor,
+    extract_sub_views,
+    pad_sensor_frame,
+    place_sub_views,
+    sensor_coverage,
+)
 from .lowrank import LowRankSVOperator, PSFDecomposition, decompose_psfs, fft_shape, plan_chunks
 
 __all__ = ["CM2Operator", "SimulationCost", "simulation_cost"]
@@ -67,11 +73,9 @@ class CM2Operator:
         self.lenses = lenses
         self.margin = margin
         self.decompositions = tuple(decompositions)
-        window = torch.zeros(system.padded_shape, dtype=lenses.dtype, device=lenses.device)
-        rows, cols = system.sensor_window
-        window[rows, cols] = 1
-        self._sensor_mask = window
-        self._own_view_mask = extract_sub_views(window, system)  # (9, S, S)
+        sensor = torch.ones(system.sensor_shape, dtype=lenses.dtype, device=lenses.device)
+        self._sensor_mask = pad_sensor_frame(sensor, system)
+        self._own_view_mask = sensor_coverage(system, lenses.dtype, lenses.device)
 
     # ------------------------------------------------------------ construction
     @classmethod

@@ -23,6 +23,7 @@ __all__ = [
     "normalized_coordinates",
     "pad_sensor_frame",
     "place_sub_views",
+    "sensor_coverage",
     "sub_view_origins",
 ]
 
@@ -254,3 +255,24 @@ def pad_sensor_frame(sensor: torch.Tensor, config: SystemConfig) -> torch.Tensor
     _check_frame(sensor, config.sensor_shape, "raw sensor frame")
     pad_r, pad_c = config.padding
     return torch.nn.functional.pad(sensor, (pad_c, pad_c, pad_r, pad_r))
+
+
+def sensor_coverage(
+    config: SystemConfig, dtype: torch.dtype = torch.float32, device: torch.device | None = None
+) -> torch.Tensor:
+    """Which pixels of each sub-view the sensor reads: 1 on the sensor, 0 in the padding.
+
+    Returns
+    -------
+    torch.Tensor
+        Shape ``(9, S, S)``.
+
+    Examples
+    --------
+    >>> config = SystemConfig.preset("cm2-mini")
+    >>> coverage = sensor_coverage(config)
+    >>> coverage[4].mean().item(), coverage[0, :, :16].max().item()  # centre lens; a corner's
+    (1.0, 0.0)
+    """
+    sensor = torch.ones(config.sensor_shape, dtype=dtype, device=device)
+    return extract_sub_views(pad_sensor_frame(sensor, config), config)

@@ -27,7 +27,7 @@ from scipy import ndimage
 from ..config import ConfigError, NoiseConfig, SystemConfig
 from .cm2 import CM2Operator
 from .departures import Departures, load_departures
-from .geometry import extract_sub_views
+from .geometry import sensor_coverage
 from .noise import SensorModel, fixed_pattern
 from .optics import system_psfs
 
@@ -255,9 +255,7 @@ class Instrument:
             src_r, dst_r = _span(dr, size)
             src_c, dst_c = _span(dc, size)
             out[..., lens, dst_r, dst_c] = targets[..., lens, src_r, src_c]
-        window = torch.zeros(self.nominal.padded_shape, dtype=targets.dtype, device=targets.device)
-        window[self.nominal.sensor_window] = 1
-        return out * extract_sub_views(window, self.nominal)
+        return out * sensor_coverage(self.nominal, targets.dtype, targets.device)
 
 
 def _span(move: int, size: int) -> tuple[slice, slice]:

@@ -30,8 +30,8 @@ from ..physics.geometry import (
     assemble_frame,
     context_views,
     crop_to_sensor,
-    extract_sub_views,
     pad_sensor_frame,
+    sensor_coverage,
 )
 from .dataset import TrainingData
 
@@ -166,9 +166,7 @@ class PatchDataset(_NoisySamples):
         self.origins = TileGrid(system.sub_view_size, self.patch, system.patch_stride).origins
         if not lens_context:  # noise per view crop: needs crops without shared pixels
             check_disjoint_view_patches(system, self.patch)
-            window = torch.zeros(system.padded_shape)
-            window[system.sensor_window] = 1
-            self.sensor_mask = extract_sub_views(window, system).numpy().astype(bool)
+            self.sensor_mask = sensor_coverage(system).numpy().astype(bool)
 
     def __len__(self) -> int:
         return len(self.frames) * len(self.origins)
