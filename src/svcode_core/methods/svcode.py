@@ -230,6 +230,8 @@ class Reconstructor(BaseReconstructor):
         self.skip_empty = skip_empty
         self.skip_threshold = system.noise.dark_offset + skip_factor * noise_floor(system.noise)
         self.model = model.to(self.device).eval()
+        lens_context = getattr(getattr(model, "model_config", None), "lens_context", False)
+        self._crop_views = context_views if lens_context else extract_sub_views
         if pool_window is not None:
             if not hasattr(self.model, "set_pool_window"):
                 raise ValueError(f"pool_window: {type(model).__name__} has no channel "
@@ -280,9 +282,7 @@ class Reconstructor(BaseReconstructor):
         values = finite_frame(frame, index)
         values = np.maximum(values, 0.0)
         padded = pad_sensor_frame(torch.from_numpy(values), self.system)
-        config = getattr(self.model, "model_config", None)
-        crop = context_views if getattr(config, "lens_context", False) else extract_sub_views
-        return np.ascontiguousarray(crop(padded, self.system).numpy())
+        return np.ascontiguousarray(self._crop_views(padded, self.system).numpy())
 
     # ------------------------------------------------------------------ model
     def _autocast(self) -> contextlib.AbstractContextManager:
