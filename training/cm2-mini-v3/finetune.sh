@@ -16,10 +16,11 @@ set -euo pipefail
 arm="$1"
 here="$(cd "$(dirname "$0")" && pwd)"
 v2="$here/../cm2-mini-v2"
+base="$v2/run/best.safetensors"
 case "$arm" in
-  context) extra=(--init "$v2/run/best.safetensors" --lens-context --epochs 4);;
-  mse) extra=(--init "$v2/run/best.safetensors" --mse-weight 100 --epochs 2);;
-  context-mse) extra=(--init "$v2/run/best.safetensors" --lens-context --mse-weight 100 --epochs 2);;
+  context) extra=(--init "$base" --lens-context --epochs 4);;
+  mse) extra=(--init "$base" --mse-weight 100 --epochs 2);;
+  context-mse) extra=(--init "$base" --lens-context --mse-weight 100 --epochs 2);;
   mse-no-coordgate|mse-no-pe)
     extra=(--init "$v2/ablations/${arm#mse-}/best.safetensors" --mse-weight 100 --epochs 2);;
   mse-long) extra=(--init "$here/mse/best.safetensors" --mse-weight 100 --epochs 8
