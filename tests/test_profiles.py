@@ -65,10 +65,22 @@ def bundled():
     return system, Simulator(system), Reconstructor.pretrained(system), admm
 
 
-@pytest.mark.xfail(strict=True, reason="the bundled model darkens regions that only six lenses "
-                   "see: the 16-px column strips at the field's left and right edges (every "
-                   "sample), the bottom rows (vessels); see its model card")
-@pytest.mark.parametrize("kind", SAMPLE_KINDS)
+#: samples on which the bundled model is still off by more than that (measured values)
+KNOWN_BANDS = {
+    "beads": "the right edge's 16-px column strip at 0.56 of the truth, a row band at 0.63",
+    "vessels": "the bottom 48 rows at 0.54-0.66 of the truth",
+}
+
+
+@pytest.mark.parametrize(
+    "kind",
+    [
+        pytest.param(kind, marks=pytest.mark.xfail(strict=True, reason=KNOWN_BANDS[kind]
+                                                   + "; see the model card"))
+        if kind in KNOWN_BANDS else kind
+        for kind in SAMPLE_KINDS
+    ],
+)
 def test_row_and_column_profiles_follow_the_truth(kind, bundled):
     system, simulator, reconstructor, admm = bundled
     truth = make_object(kind, system.sub_view_size, SAMPLE_SEED)

@@ -9,6 +9,7 @@
 #   mse-no-pe         as the model they are compared with
 #   mse-long          8 more epochs of the mse arm's model (lr 4e-4 after 100 warm-up steps,
 #                     MSE weight 100, other patches: seed 2): what a longer schedule buys
+#   mse-long2         8 more epochs of mse-long's model (lr 3e-4, seed 3): the same again
 # The v2 model is ../cm2-mini-v2/run/best.safetensors, its ablations'
 # ../cm2-mini-v2/ablations/<name>/best.safetensors.
 # Usage (from the repository root): bash training/cm2-mini-v3/finetune.sh ARM
@@ -25,7 +26,9 @@ case "$arm" in
     extra=(--init "$v2/ablations/${arm#mse-}/best.safetensors" --mse-weight 100 --epochs 2);;
   mse-long) extra=(--init "$here/mse/best.safetensors" --mse-weight 100 --epochs 8
                   --lr 4e-4 --warmup-steps 100 --seed 2);;
-  *) echo "finetune: context, mse, context-mse, mse-no-coordgate, mse-no-pe or mse-long" >&2
+  mse-long2) extra=(--init "$here/mse-long/best.safetensors" --mse-weight 100 --epochs 8
+                   --lr 3e-4 --warmup-steps 100 --seed 3);;
+  *) echo "finetune: context, mse, context-mse, mse-no-coordgate, mse-no-pe, mse-long or mse-long2" >&2
      exit 2;;
 esac
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
