@@ -26,6 +26,9 @@ print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
 
 
 def _page_faults(mode: str, env: dict[str, str] | None = None) -> int:
+    if env is None:  # without allocator settings (dask's nanny leaves one in os.environ)
+        env = {k: v for k, v in os.environ.items()
+               if not k.startswith("MALLOC_") and k != "GLIBC_TUNABLES"}  # fmt: skip
     out = subprocess.run([sys.executable, "-c", _PROBE, mode], check=True,
                          capture_output=True, text=True, env=env)  # fmt: skip
     return int(out.stdout.split()[-1])

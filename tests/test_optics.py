@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 import tifffile
-from scipy.special import j1
+from scipy.special import j1, jn_zeros
 
 from svcode_core.config import OpticsConfig, SystemConfig
 from svcode_core.physics.optics import (
@@ -51,6 +51,11 @@ def field(system: SystemConfig, lens: int, point) -> tuple[float, np.ndarray]:
 
 
 # ---------------------------------------------------------------- diffraction
+def test_airy_zero_is_the_first_zero_of_j1_over_pi():
+    assert AIRY_ZERO == pytest.approx(jn_zeros(1, 1)[0] / np.pi, rel=4 * np.finfo(float).eps)
+    assert abs(j1(np.pi * AIRY_ZERO)) < 1e-15
+
+
 @pytest.mark.parametrize("samples", [128, 256])
 def test_on_axis_psf_is_the_airy_pattern(mini_system, samples):
     airy = 3.0  # first zero on a pixel centre

@@ -241,3 +241,63 @@ def test_cli_runs_a_baseline_with_its_options(tiny_system, stack, tmp_path, caps
         _cli([tmp_path / "meas.tif", "--out", out, "--method", "wiener", "--tv-weight", "1"])
     with pytest.raises(ValueError, match="--rho applies to the model-based baselines"):
         _cli([tmp_path / "meas.tif", "--out", out, "--rho", "1"])
+
+
+def test_frames_side_by_side_match_one_after_another(tiny_system, tiny_model_config):
+    """A whole-sub-view SV-CoDe model runs a stack's frames on threads side by side (one
+    torch thread each) with the same output as one after another, and torch's thread
+    count is restored."""
+    from svcode_core.network import SVCoDe
+    from svcode_core.run.parallel import local_frames
+
+    rec = Reconstructor(SVCoDe(tiny_model_config), tiny_system, skip_empty=False)
+    assert rec.frames_side_by_side
+    frames = np.random.default_rng(1).random((7, *tiny_system.sensor_shape), dtype=np.float32)
+    before = torch.get_num_threads()
+    side = list(local_frames(lambda: rec, frames, range(7), True, threads=3))
+    assert torch.get_num_threads() == before
+    alone = list(local_frames(lambda: rec, frames, range(7), True, threads=1))
+    assert [index for index, *_ in alone] == list(range(7))
+    assert sorted(index for index, *_ in side) == list(range(7))
+    by_index = {index: (recon, views) for index, recon, views, _ in side}
+    for index, recon, views, _ in alone:
+        # only the threads' summation order differs: a few float32 roundings per layer
+        tolerance = 64 * np.finfo(np.float32).eps * max(float(np.abs(recon).max()), 1.0)
+        np.testing.assert_allclose(by_index[index][0], recon, rtol=0, atol=tolerance)
+        np.testing.assert_allclose(by_index[index][1], views, rtol=0, atol=tolerance)
+
+
+def test_methods_with_state_between_frames_run_in_order(tiny_system):
+    """A reconstructor that does not allow it (here: tiles smaller than the sub-view) runs
+    frames one after another, in order."""
+    from svcode_core.run.parallel import local_frames
+
+    rec = _reconstructor(tiny_system)
+    assert not rec.frames_side_by_side
+    frames = np.zeros((4, *tiny_system.sensor_shape), dtype=np.float32)
+    order = [index for index, *_ in local_frames(lambda: rec, frames, [3, 0, 2, 1], False, 2)]
+    assert order == [3, 0, 2, 1]
+
+
+def test_mask_cache_keeps_its_accounts_under_threads():
+    """Threads storing and reading masks at once (frames side by side) leave the cache's
+    byte count equal to what it holds, within its budget."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from svcode_core.network.coordgate import MaskCache
+
+    cache = MaskCache(max_bytes=40 * 4096)
+
+    def churn(seed: int) -> None:
+        rng = np.random.default_rng(seed)
+        for _ in range(400):
+            cache.new_call()
+            key = int(rng.integers(100))
+            if cache.get(key) is None:
+                cache.put(key, (torch.zeros(1024),))
+
+    with ThreadPoolExecutor(4) as pool:
+        list(pool.map(churn, range(4)))
+    held = sum(m.nbytes for masks, _ in cache._entries.values() for m in masks)
+    assert cache.info()["bytes"] == held <= cache.max_bytes
+    assert cache.info()["hits"] + cache.info()["misses"] == 1600

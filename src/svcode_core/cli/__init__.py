@@ -15,7 +15,7 @@ import argparse
 import importlib
 import sys
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from ..config import SystemConfig, available_presets, load_system
@@ -42,8 +42,9 @@ def chosen_system(args: argparse.Namespace) -> SystemConfig | None:
     return load_system(choice) if choice else None
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The ``svcode`` argument parser with every sub-command registered."""
+def build_parser(commands: Sequence[str] = COMMANDS) -> argparse.ArgumentParser:
+    """The ``svcode`` argument parser with ``commands`` (default: every sub-command)
+    registered."""
     parser = argparse.ArgumentParser(
         prog="svcode",
         description="SV-CoDe for computational miniature mesoscopes (CM²).",
@@ -51,12 +52,20 @@ def build_parser() -> argparse.ArgumentParser:
     debug_help = "show the full traceback of an error instead of a one-line message"
     parser.add_argument("--debug", action="store_true", help=debug_help)
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for name in COMMANDS:
+    for name in commands:
         importlib.import_module(f"{__name__}.{name}").add_parser(subparsers)
     for command in subparsers.choices.values():  # also accepted after the command
         command.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                              help=debug_help)  # fmt: skip
     return parser
+
+
+def _commands_needed(argv: Sequence[str]) -> Sequence[str]:
+    """Only the sub-command ``argv`` names, when it names one (each sub-command module
+    imports what its command needs, up to a second of start-up for all of them); else
+    every one, for the help and the list of choices."""
+    first = next((arg for arg in argv if not arg.startswith("-")), None)
+    return (first,) if first in COMMANDS else COMMANDS
 
 
 def describe_error(err: BaseException) -> str:
@@ -91,7 +100,8 @@ def main(argv: list[str] | None = None) -> int:
     status 2, an interruption exits with 130; with ``--debug`` both raise. The process
     keeps freed memory for reuse (:func:`~svcode_core.run.allocator.reuse_freed_memory`).
     """
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else argv
+    args = build_parser(_commands_needed(argv)).parse_args(argv)
     reuse_freed_memory()
     debug = getattr(args, "debug", False)
     with warnings.catch_warnings():

@@ -180,6 +180,10 @@ class BaseReconstructor(ABC):
     method: str
     system: SystemConfig
     precision: str
+    #: whether frames of one recording may run side by side on threads of one process
+    #: (nothing is carried from frame to frame and shared caches are locked), one CPU
+    #: thread each (:func:`svcode_core.run.parallel.local_frames`)
+    frames_side_by_side: bool = False
 
     def check_frames(self, frames: Any) -> np.ndarray:
         """The input as a ``(T, H, W)`` array (a view where possible), checked for type,

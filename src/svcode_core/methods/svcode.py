@@ -284,6 +284,13 @@ class Reconstructor(BaseReconstructor):
         padded = pad_sensor_frame(torch.from_numpy(values), self.system)
         return np.ascontiguousarray(self._crop_views(padded, self.system).numpy())
 
+    @property
+    def frames_side_by_side(self) -> bool:  # type: ignore[override]
+        """On the CPU with one tile per frame (the whole sub-view): then a frame's network
+        layers are too small to keep several cores busy, a frame's working memory is one
+        tile's, and frames share nothing but the locked mask cache."""
+        return self.device.type == "cpu" and len(self.grid) == 1
+
     # ------------------------------------------------------------------ model
     def _autocast(self) -> contextlib.AbstractContextManager:
         if self.precision == "fp32":

@@ -22,6 +22,7 @@ Mask cache
 from __future__ import annotations
 
 import math
+import threading
 from collections import OrderedDict
 from collections.abc import Callable, Hashable, Sequence
 from dataclasses import dataclass
@@ -110,7 +111,8 @@ class MaskCache:
     (an LRU cycling through more than it holds never hits). Entries of a pattern no
     longer in use (another sub-view size, dtype or tile size) become evictable one call
     later. The owner calls :meth:`check_weights` before each call so that changed
-    weights drop everything.
+    weights drop everything. Every method holds one lock, so forward calls may run on
+    several threads at once (frames of a recording side by side).
     """
 
     def __init__(self, max_bytes: int) -> None:
@@ -123,71 +125,79 @@ class MaskCache:
         self._call = 0
         self.hits = 0
         self.misses = 0
+        self._lock = threading.RLock()
 
     def check_weights(self, key: Hashable) -> None:
         """Drop every entry if ``key`` (a fingerprint of the mask weights) changed."""
-        if key != self._weights_key:
-            self.clear()
-            self._weights_key = key
+        with self._lock:
+            if key != self._weights_key:
+                self.clear()
+                self._weights_key = key
 
     def new_call(self) -> None:
         """Start a forward call: entries it uses are not evicted during it or the next one."""
-        self._call += 1
+        with self._lock:
+            self._call += 1
 
     def clear(self) -> None:
         """Drop every entry (the hit and miss counters are kept)."""
-        self._entries.clear()
-        self._bytes = 0
+        with self._lock:
+            self._entries.clear()
+            self._bytes = 0
 
     def get(self, key: Hashable) -> tuple[torch.Tensor, ...] | None:
         """The entry for ``key`` (marked most recently used), or ``None``."""
-        entry = self._entries.get(key)
-        if entry is None:
-            self.misses += 1
-            return None
-        self.hits += 1
-        self._entries[key] = (entry[0], self._call)
-        self._entries.move_to_end(key)
-        return entry[0]
+        with self._lock:
+            entry = self._entries.get(key)
+            if entry is None:
+                self.misses += 1
+                return None
+            self.hits += 1
+            self._entries[key] = (entry[0], self._call)
+            self._entries.move_to_end(key)
+            return entry[0]
 
     def reserve(self, nbytes: int) -> bool:
         """Make room for ``nbytes`` by evicting entries outside the working set, if that
         suffices (otherwise nothing is evicted); whether ``nbytes`` fit."""
-        evictable = [
-            (key, _nbytes(mask))
-            for key, (mask, call) in self._entries.items()
-            if call < self._call - 1
-        ]
-        if self._bytes - sum(size for _, size in evictable) + nbytes > self.max_bytes:
-            return False
-        for key, size in evictable:  # least recently used first
-            if self._bytes + nbytes <= self.max_bytes:
-                break
-            del self._entries[key]
-            self._bytes -= size
-        return True
+        with self._lock:
+            evictable = [
+                (key, _nbytes(mask))
+                for key, (mask, call) in self._entries.items()
+                if call < self._call - 1
+            ]
+            if self._bytes - sum(size for _, size in evictable) + nbytes > self.max_bytes:
+                return False
+            for key, size in evictable:  # least recently used first
+                if self._bytes + nbytes <= self.max_bytes:
+                    break
+                del self._entries[key]
+                self._bytes -= size
+            return True
 
     def put(self, key: Hashable, masks: tuple[torch.Tensor, ...]) -> bool:
         """Store ``masks`` (detached, not copied) if :meth:`reserve` makes room; whether stored."""
-        old = self._entries.pop(key, None)
-        if old is not None:
-            self._bytes -= _nbytes(old[0])
-        size = _nbytes(masks)
-        if not self.reserve(size):
-            return False
-        self._entries[key] = (tuple(m.detach() for m in masks), self._call)
-        self._bytes += size
-        return True
+        with self._lock:
+            old = self._entries.pop(key, None)
+            if old is not None:
+                self._bytes -= _nbytes(old[0])
+            size = _nbytes(masks)
+            if not self.reserve(size):
+                return False
+            self._entries[key] = (tuple(m.detach() for m in masks), self._call)
+            self._bytes += size
+            return True
 
     def info(self) -> dict[str, int]:
         """``entries``, ``bytes``, ``max_bytes``, ``hits`` and ``misses``."""
-        return {
-            "entries": len(self._entries),
-            "bytes": self._bytes,
-            "max_bytes": self.max_bytes,
-            "hits": self.hits,
-            "misses": self.misses,
-        }
+        with self._lock:
+            return {
+                "entries": len(self._entries),
+                "bytes": self._bytes,
+                "max_bytes": self.max_bytes,
+                "hits": self.hits,
+                "misses": self.misses,
+            }
 
 
 def _nbytes(masks: tuple[torch.Tensor, ...]) -> int:

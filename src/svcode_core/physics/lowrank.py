@@ -34,7 +34,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.fft import next_fast_len
 
 from ..config import DEFAULT_MEMORY_BUDGET
 from .geometry import normalized_coordinates
@@ -299,6 +298,8 @@ class InterpolatedMaps:
 
 def fft_shape(shape: tuple[int, int], kernel_shape: tuple[int, int]) -> tuple[int, int]:
     """FFT grid of the operator: at least ``(H + h//2, W + w//2)`` and the kernel, 5-smooth."""
+    from scipy.fft import next_fast_len  # here: scipy.fft takes 0.3-0.4 s to import
+
     return tuple(
         next_fast_len(max(size + kernel // 2, kernel), real=True)
         for size, kernel in zip(shape, kernel_shape, strict=True)

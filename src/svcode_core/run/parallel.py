@@ -30,12 +30,15 @@ Running on a cluster with GPUs
 from __future__ import annotations
 
 import contextlib
+import itertools
 import threading
 import uuid
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from typing import Any
 
 import numpy as np
+import torch
 
 from ..methods.base import BaseReconstructor
 
@@ -55,13 +58,74 @@ def _counters(result: Any) -> dict[str, int]:
 
 
 def local_frames(
-    factory: Factory, frames: Sequence[np.ndarray], indices: Iterable[int], return_views: bool
+    factory: Factory,
+    frames: Sequence[np.ndarray],
+    indices: Iterable[int],
+    return_views: bool,
+    threads: int | None = None,
 ) -> Iterator[FrameResult]:
-    """Reconstruct ``frames[i]`` for every ``i`` in ``indices`` in this process, in order."""
+    """Reconstruct ``frames[i]`` for every ``i`` in ``indices`` in this process.
+
+    A reconstructor that allows it
+    (:attr:`~svcode_core.methods.base.BaseReconstructor.frames_side_by_side`) runs the
+    first frame alone (it fills the mask cache), then the others ``threads`` at a time
+    side by side, and yields them in completion order; at most ``2 × threads`` frames
+    are in flight. Every frame, the first too, runs on one torch thread: measured on the
+    bundled ``cm2-mini`` model, a frame takes as long on two threads as on one (0.86 s for
+    the first, whose masks are computed, 0.42-0.56 s for the others) at up to twice the
+    CPU time. Otherwise the frames run one after another, in order, on every thread.
+
+    Parameters
+    ----------
+    factory : callable
+        Builds the reconstructor.
+    frames : sequence of numpy.ndarray
+    indices : iterable of int
+    return_views : bool
+    threads : int, optional
+        Frames side by side; default :func:`torch.get_num_threads`.
+    """
     reconstructor = factory()
-    for index in indices:
-        result = reconstructor.reconstruct(frames[index], return_views)
-        yield index, result.reconstruction, result.views, _counters(result)
+    pending = list(indices)
+    threads = torch.get_num_threads() if threads is None else threads
+
+    def run(index: int, frame: np.ndarray) -> FrameResult:
+        result = reconstructor.reconstruct(frame, return_views)
+        return index, result.reconstruction, result.views, _counters(result)
+
+    if not (reconstructor.frames_side_by_side and threads > 1 and len(pending) > 2):
+        yield from (run(index, frames[index]) for index in pending)
+        return
+    rest = iter(pending[1:])
+    with _torch_threads(1), ThreadPoolExecutor(threads, "svcode-frame") as pool:
+        yield run(pending[0], frames[pending[0]])
+
+        def submit(index: int) -> Future:  # the frame is read here, in this thread
+            return pool.submit(run, index, np.asarray(frames[index]))
+
+        running = {submit(index) for index in itertools.islice(rest, 2 * threads)}
+        try:
+            while running:
+                done, running = wait(running, return_when=FIRST_COMPLETED)
+                for future in done:
+                    yield future.result()
+                    following = next(rest, None)
+                    if following is not None:
+                        running.add(submit(following))
+        finally:  # stopped early (an error, an interrupt): drop the frames not started
+            for future in running:
+                future.cancel()
+
+
+@contextlib.contextmanager
+def _torch_threads(count: int) -> Iterator[None]:
+    """Torch's intra-op threads set to ``count`` meanwhile."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(count)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 _WORKER_CACHE: dict[str, BaseReconstructor] = {}

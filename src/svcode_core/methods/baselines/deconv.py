@@ -39,10 +39,10 @@ from __future__ import annotations
 import math
 
 import torch
-from scipy.fft import next_fast_len
 
 from ...physics.cm2 import CM2Operator
 from ...physics.geometry import extract_sub_views, pad_sensor_frame
+from ...physics.lowrank import fft_shape
 
 __all__ = [
     "ShiftInvariantDeconvolution",
@@ -160,10 +160,7 @@ def richardson_lucy_deconvolve(
         raise ValueError("Richardson–Lucy needs non-negative PSFs")
     rows, cols = images.shape[-2:]
     height, width = psfs.shape[-2:]
-    shape = (
-        next_fast_len(max(rows + height // 2, height), real=True),
-        next_fast_len(max(cols + width // 2, width), real=True),
-    )
+    shape = fft_shape((rows, cols), (height, width))
     spectra = _centred_spectra(psfs, shape)
 
     def blur(image: torch.Tensor, spectrum: torch.Tensor) -> torch.Tensor:
