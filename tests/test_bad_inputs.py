@@ -507,10 +507,15 @@ def test_cuda_on_a_cpu_build_is_one_line_and_debug_shows_the_traceback(scene, ca
 def test_tile_options_of_the_network_are_refused_for_a_baseline(scene, capsys):
     status, err = wiener(capsys, scene / "meas.tif", scene / "out.tif", "--tile", "16")
     assert status == 2
+    one_error_line(err, "--tile applies to --method svcode, not to --method wiener")
+    for option in (["--pool-window", "96"], ["--mask-cache", "0"], ["--no-skip"],
+                   ["--batch-size", "2"]):
+        status, err = wiener(capsys, scene / "meas.tif", scene / "out.tif", *option)
+        assert status == 2
+        one_error_line(err, f"{option[0]} applies to --method svcode")
+    status, err = wiener(capsys, scene / "meas.tif", scene / "out.tif", "--tile", "16",
+                         "--stride", "8")
     one_error_line(err, "--tile and --stride apply to --method svcode")
-    status, err = wiener(capsys, scene / "meas.tif", scene / "out.tif", "--pool-window", "96")
-    assert status == 2
-    one_error_line(err, "--pool-window applies to --method svcode")
 
 
 def test_missing_and_unreadable_inputs_are_one_line(scene, capsys):

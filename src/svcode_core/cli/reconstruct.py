@@ -18,6 +18,7 @@ from ..methods.registry import (
     OPTION_FLAGS,
     method,
 )
+from ..methods.svcode import DEFAULT_MASK_CACHE_BYTES
 from ..pretrained import require_bundled_weights
 from ..run.stream import FrameReader, reconstruct_file
 
@@ -91,7 +92,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--no-skip", action="store_true", help="run every tile, also those without signal"
     )
-    parser.add_argument("--mask-cache", type=int, default=1024, metavar="MIB",
+    parser.add_argument("--mask-cache", type=int, metavar="MIB",
                         help="memory for frozen coordinate masks, kept for the next tile "
                         "and frame; 0 to recompute them (default: 1024; the bundled cm2-mini "
                         "model needs 614 for its whole-sub-view tile)")
@@ -224,10 +225,20 @@ def _refuse_baseline_options(args: argparse.Namespace) -> None:
         raise FileNotFoundError(f"weights not found: {args.weights}")
 
 
-def _refuse_pool_window(args: argparse.Namespace) -> None:
-    if args.pool_window is not None:
-        raise ValueError(f"--pool-window applies to --method svcode, not to --method "
-                         f"{args.method}")
+#: the options only the network takes (``args`` attribute → flag)
+_NETWORK_OPTIONS = {"tile": "--tile", "stride": "--stride", "batch_size": "--batch-size",
+                    "no_skip": "--no-skip", "mask_cache": "--mask-cache",
+                    "pool_window": "--pool-window"}  # fmt: skip
+
+
+def _refuse_network_options(args: argparse.Namespace, why: str) -> None:
+    """Refuse every network option given with another method (``why``: what it does)."""
+    given = [flag for dest, flag in _NETWORK_OPTIONS.items()  # (0 is given, False is not)
+             if getattr(args, dest) is not None and getattr(args, dest) is not False]
+    if given:
+        verb = "applies" if len(given) == 1 else "apply"
+        raise ValueError(f"{' and '.join(given)} {verb} to --method svcode, not to --method "
+                         f"{args.method} ({why})")
 
 
 def _check_precision(args: argparse.Namespace) -> None:
@@ -240,10 +251,7 @@ def _check_precision(args: argparse.Namespace) -> None:
 def _spec(args: argparse.Namespace, system: SystemConfig) -> MethodSpec:
     """The picklable reconstructor recipe of ``args.method``."""
     if args.method in MODEL_BASED_METHODS:
-        if args.tile is not None or args.stride is not None:
-            raise ValueError(f"--tile and --stride apply to --method svcode, not to "
-                             f"--method {args.method} (it does not tile)")  # fmt: skip
-        _refuse_pool_window(args)
+        _refuse_network_options(args, "it inverts the forward model, without tiles")
         _check_precision(args)
         options = {"device": args.device, "precision": args.precision, **baseline_options(args)}
         return MethodSpec(args.method, system, options=options)
@@ -254,10 +262,7 @@ def _spec(args: argparse.Namespace, system: SystemConfig) -> MethodSpec:
             raise ValueError(f"--method {args.method} needs --weights: no learned baseline is "
                              "bundled; train one with `svcode train --method "
                              f"{args.method}` (see the README)")  # fmt: skip
-        if args.tile is not None or args.stride is not None:
-            raise ValueError(f"--tile and --stride do not apply to --method {args.method}: "
-                             "it reconstructs the whole frame at once")  # fmt: skip
-        _refuse_pool_window(args)
+        _refuse_network_options(args, "it reconstructs the whole frame at once")
         options = {"device": args.device, "precision": args.precision}
         return MethodSpec(args.method, system, str(args.weights), options)
     weights = args.weights if args.weights is not None else require_bundled_weights(system)
@@ -268,7 +273,8 @@ def _spec(args: argparse.Namespace, system: SystemConfig) -> MethodSpec:
         "stride": args.stride,
         "batch_size": args.batch_size,
         "skip_empty": not args.no_skip,
-        "mask_cache_bytes": args.mask_cache << 20,
+        "mask_cache_bytes": (DEFAULT_MASK_CACHE_BYTES if args.mask_cache is None
+                             else args.mask_cache << 20),
         "pool_window": args.pool_window,
     }
     return MethodSpec("svcode", system, str(weights), options)
