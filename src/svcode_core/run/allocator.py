@@ -10,9 +10,9 @@ time halves (their interpolated fields are the freshest arrays of all).
 
 :func:`reuse_freed_memory` asks glibc to serve all blocks from its heap and to keep up to
 2 GiB of freed memory there, with one heap for all threads: frames reconstructed side by
-side on threads (:func:`svcode_core.run.parallel.local_frames`) would otherwise each get
-a heap of their own, which glibc trims after every free (measured on a 6-frame
-``cm2-mini`` stack on two threads: 3.6 s of system time instead of 1.1). The ``svcode``
+side on threads (:func:`svcode_core.run.parallel.local_frames`) would otherwise allocate
+from heaps of their own, and the paging comes back (measured on a 6-frame ``cm2-mini``
+stack on two threads: 3.6 s of system time instead of 1.1). The ``svcode``
 command does this at start; a library cannot know what else its host process does, so
 ``import svcode_core`` never does (napari keeps its own setting). The same effect without
 code: ``GLIBC_TUNABLES=glibc.malloc.mmap_max=0:glibc.malloc.arena_max=1`` in the
