@@ -267,7 +267,7 @@ def test_frames_side_by_side_match_one_after_another(tiny_system, tiny_model_con
         np.testing.assert_allclose(by_index[index][1], views, rtol=0, atol=tolerance)
 
 
-def test_methods_with_state_between_frames_run_in_order(tiny_system):
+def test_reconstructors_that_do_not_allow_it_run_frames_in_order(tiny_system):
     """A reconstructor that does not allow it (here: tiles smaller than the sub-view) runs
     frames one after another, in order."""
     from svcode_core.run.parallel import local_frames
