@@ -24,7 +24,9 @@ from svcode_core.training import (
     Trainer,
     TrainingData,
     check_disjoint_view_patches,
+    edge_weights,
     generate_dataset,
+    joint_loss,
     split_frames,
     stage_loss,
     svcode_loss,
@@ -250,6 +252,31 @@ def test_joint_loss_sums_both_stages():
         stage_loss(torch.rand(1, 1, 8, 8), torch.rand(1, 1, 8, 8))
 
 
+def test_edge_weights_mark_the_sub_view_edge_strips():
+    size, sub_view, strip = 24, 64, 5
+    rows, cols = np.indices((sub_view, sub_view))
+    distance = np.minimum.reduce([rows, cols, sub_view - 1 - rows, sub_view - 1 - cols])
+    whole = np.where(distance < strip, 4.0, 1.0)  # the sub-view's weights, built directly
+    origins = torch.tensor([[0, 0], [20, 40], [40, 17], [20, 20]])
+    weights = edge_weights(origins, size, sub_view, 4.0, strip)
+    assert weights.shape == (4, 1, size, size) and weights.dtype == torch.float32
+    for (r, c), crop in zip(origins.tolist(), weights[:, 0].numpy(), strict=True):
+        np.testing.assert_array_equal(crop, whole[r : r + size, c : c + size])
+    assert (weights[3] == 1).all()  # a crop clear of the edges
+
+
+def test_edge_weight_scales_the_squared_error_of_the_edge_only():
+    target = torch.zeros(1, 1, 32, 32)
+    weights = edge_weights(torch.tensor([[0, 0]]), 32, 96, 5.0)
+    at_edge, inside = target.clone(), target.clone()
+    at_edge[..., :4, 20:24] = 0.5
+    inside[..., 20:24, 20:24] = 0.5
+    for error, factor in ((at_edge, 5.0), (inside, 1.0)):
+        plain = float(stage_loss(error, target, alpha=0.0))
+        assert float(stage_loss(error, target, alpha=0.0, weights=weights)) == pytest.approx(
+            factor * plain, rel=1e-6)
+
+
 # ------------------------------------------------------------------------------ trainer
 def _trainer(data, out, **changes) -> Trainer:
     config = TrainConfig(**{"epochs": 2, "batch_size": 2, "lr": 1e-3, "patches_per_epoch": 4,
@@ -272,6 +299,19 @@ def test_one_step_lowers_the_loss_on_a_fixed_batch(tiny_data, tmp_path):
     step = trainer.train_step(batch)
     assert step["loss"] == pytest.approx(before, rel=1e-5)
     assert loss() < before
+
+
+def test_edge_weight_enters_the_training_loss(tiny_data, tmp_path):
+    trainer = _trainer(tiny_data, tmp_path, edge_weight=3.0)
+    items = [trainer.val_set[i] for i in range(2)]
+    batch = trainer.task.collate(items)
+    with torch.no_grad():
+        d, r = trainer.model(batch["views"], batch["origin"], tiny_data.system.sub_view_size)
+    weights = edge_weights(batch["origin"], r.shape[-1], tiny_data.system.sub_view_size, 3.0)
+    expected = float(joint_loss({"demix": (d, batch["demixed"]), "recon": (r, batch["object"])},
+                                weights=weights)[0])
+    assert trainer.train_step(batch)["loss"] == pytest.approx(expected, rel=1e-5)
+    assert _trainer(tiny_data, tmp_path / "plain")._loss_weights(batch) is None
 
 
 def test_resume_continues_exactly(tiny_data, tmp_path, monkeypatch):

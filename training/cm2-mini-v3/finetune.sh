@@ -10,6 +10,9 @@
 #   mse-long          8 more epochs of the mse arm's model (lr 4e-4 after 100 warm-up steps,
 #                     MSE weight 100, other patches: seed 2): what a longer schedule buys
 #   mse-long2         8 more epochs of mse-long's model (lr 3e-4, seed 3): the same again
+#   mse-long3         8 more epochs of mse-long2's model (lr 2e-4, seed 4): and again
+#   edge              the mse-long3 arm with the squared error of the sub-view's 16-px edge
+#                     strips weighted 4 times: does the outer ring catch up with the centre?
 # The v2 model is ../cm2-mini-v2/run/best.safetensors, its ablations'
 # ../cm2-mini-v2/ablations/<name>/best.safetensors.
 # Usage (from the repository root): bash training/cm2-mini-v3/finetune.sh ARM
@@ -28,7 +31,11 @@ case "$arm" in
                   --lr 4e-4 --warmup-steps 100 --seed 2);;
   mse-long2) extra=(--init "$here/mse-long/best.safetensors" --mse-weight 100 --epochs 8
                    --lr 3e-4 --warmup-steps 100 --seed 3);;
-  *) echo "finetune: context, mse, context-mse, mse-no-coordgate, mse-no-pe, mse-long or mse-long2" >&2
+  mse-long3) extra=(--init "$here/mse-long2/best.safetensors" --mse-weight 100 --epochs 8
+                   --lr 2e-4 --warmup-steps 100 --seed 4);;
+  edge) extra=(--init "$here/mse-long2/best.safetensors" --mse-weight 100 --epochs 8
+              --lr 2e-4 --warmup-steps 100 --seed 4 --edge-weight 4);;
+  *) echo "finetune: context, mse, context-mse, mse-no-coordgate, mse-no-pe, mse-long, mse-long2, mse-long3 or edge" >&2
      exit 2;;
 esac
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"

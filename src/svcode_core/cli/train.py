@@ -20,6 +20,7 @@ from ..training.configs import (
     model_config_from,
     with_svcode_options,
 )
+from ..training.loss import EDGE_STRIP
 from . import add_system_arguments, chosen_system
 
 
@@ -73,6 +74,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--mse-weight", type=float, default=defaults.beta,
                         help="weight of the MSE in each stage's loss (SSIM barely sees a "
                         "region's brightness; a larger weight holds dim regions to it)")
+    parser.add_argument("--edge-weight", type=float, default=defaults.edge_weight,
+                        help="weight of the squared error on the outer "
+                        f"{EDGE_STRIP} pixels of the sub-view (its edge strips: fewer "
+                        "patches see them; default 1, as elsewhere)")
     parser.add_argument("--patches-per-epoch", type=int,
                         help="training patches drawn per epoch (default: all)")
     parser.add_argument("--val-patches", type=int,
@@ -118,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
     config = TrainConfig(
         epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
         min_lr_ratio=args.min_lr_ratio, warmup_steps=args.warmup_steps, grad_clip=args.grad_clip,
-        alpha=args.ssim_weight, beta=args.mse_weight,
+        alpha=args.ssim_weight, beta=args.mse_weight, edge_weight=args.edge_weight,
         patches_per_epoch=args.patches_per_epoch, val_patches=args.val_patches,
         seed=args.seed, workers=args.workers, same_origin=args.same_origin,
     )

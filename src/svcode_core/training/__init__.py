@@ -3,7 +3,14 @@ loss, tasks and trainer."""
 
 from .dataset import DataRecipe, TrainingData, generate_dataset, split_frames, training_object
 from .distributed import DistInfo, init_distributed, shutdown_distributed
-from .loss import joint_loss, psnr_per_sample, ssim_per_sample, stage_loss, svcode_loss
+from .loss import (
+    edge_weights,
+    joint_loss,
+    psnr_per_sample,
+    ssim_per_sample,
+    stage_loss,
+    svcode_loss,
+)
 from .sampler import EpochSampler, FrameDataset, PatchDataset, check_disjoint_view_patches
 from .tasks import FrameTask, PatchTask, training_task
 from .trainer import TrainConfig, Trainer
@@ -20,6 +27,7 @@ __all__ = [
     "Trainer",
     "TrainingData",
     "check_disjoint_view_patches",
+    "edge_weights",
     "generate_dataset",
     "init_distributed",
     "joint_loss",

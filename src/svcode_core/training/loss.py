@@ -1,7 +1,9 @@
 """The joint SV-CoDe loss and the validation metrics.
 
 ``L = L_demix + L_recon`` with ``L_stage = α (1 − SSIM) + β MSE`` (α = β = 1 in the paper;
-the learned baselines have the reconstruction stage alone, :func:`joint_loss`); SSIM is
+the learned baselines have the reconstruction stage alone, :func:`joint_loss`). The MSE may
+weigh some pixels more than others (:func:`edge_weights`: the sub-view's edge strips, which
+a patch-trained model sees least and reconstructs worst). SSIM is
 pytorch-msssim's Gaussian-window SSIM (window 11, σ 1.5, ``data_range = 1``), averaged over
 channels and batch. Everything is computed in float32, also when the network
 ran under bf16 autocast.
@@ -23,10 +25,13 @@ from pytorch_msssim import ssim
 
 from ..evaluation.metrics import psnr_from_mse
 
-__all__ = ["joint_loss", "psnr_per_sample", "ssim_per_sample", "stage_loss", "svcode_loss"]
+__all__ = ["EDGE_STRIP", "edge_weights", "joint_loss", "psnr_per_sample", "ssim_per_sample",
+           "stage_loss", "svcode_loss"]
 
 #: Smallest MSE used by :func:`psnr_per_sample` (caps the PSNR of a perfect patch at 100 dB).
 MIN_MSE = 1e-10
+#: Width in sub-view pixels of the edge strips that :func:`edge_weights` weighs.
+EDGE_STRIP = 16
 
 
 def _check(prediction: torch.Tensor, target: torch.Tensor) -> None:
@@ -41,7 +46,11 @@ def _check(prediction: torch.Tensor, target: torch.Tensor) -> None:
 
 
 def stage_loss(
-    prediction: torch.Tensor, target: torch.Tensor, alpha: float = 1.0, beta: float = 1.0
+    prediction: torch.Tensor,
+    target: torch.Tensor,
+    alpha: float = 1.0,
+    beta: float = 1.0,
+    weights: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """``α (1 − SSIM) + β MSE`` of one stage, a float32 scalar.
 
@@ -51,27 +60,84 @@ def stage_loss(
         ``(B, C, H, W)`` with values in ``[0, 1]``; ``H, W >= 11``.
     alpha, beta : float
         Weights of the SSIM and MSE terms.
+    weights : torch.Tensor, optional
+        Per-pixel weights of the squared error, broadcastable to ``(B, C, H, W)``
+        (e.g. :func:`edge_weights`); the MSE is then the mean of the weighted squares.
+
+    Examples
+    --------
+    >>> target = torch.zeros(1, 1, 16, 16)
+    >>> prediction = target + 0.1
+    >>> round(float(stage_loss(prediction, target, alpha=0.0)), 6)
+    0.01
+    >>> thrice = torch.full((1, 1, 16, 16), 3.0)
+    >>> round(float(stage_loss(prediction, target, alpha=0.0, weights=thrice)), 6)
+    0.03
     """
     _check(prediction, target)
     prediction, target = prediction.float(), target.float()
     structural = 1.0 - ssim(prediction, target, data_range=1.0, size_average=True)
-    return alpha * structural + beta * torch.mean((prediction - target) ** 2)
+    squares = (prediction - target) ** 2
+    if weights is not None:
+        squares = squares * weights.float()
+    return alpha * structural + beta * torch.mean(squares)
 
 
 def joint_loss(
-    stages: Mapping[str, tuple[torch.Tensor, torch.Tensor]], alpha: float = 1.0, beta: float = 1.0
+    stages: Mapping[str, tuple[torch.Tensor, torch.Tensor]],
+    alpha: float = 1.0,
+    beta: float = 1.0,
+    weights: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, dict[str, float]]:
-    """Sum of :func:`stage_loss` over named ``(prediction, target)`` pairs.
+    """Sum of :func:`stage_loss` over named ``(prediction, target)`` pairs, every stage's
+    squared error weighted by the same ``weights`` (their pixels are the same).
 
     Returns
     -------
     (loss, parts)
         The differentiable total and each stage's loss as a float, by name.
     """
-    losses = {name: stage_loss(pred, target, alpha, beta) for name, (pred, target) in
+    losses = {name: stage_loss(pred, target, alpha, beta, weights) for name, (pred, target) in
               stages.items()}
     parts = {name: float(loss.detach()) for name, loss in losses.items()}
     return sum(losses.values()), parts
+
+
+def edge_weights(
+    origins: torch.Tensor, size: int, sub_view_size: int, weight: float,
+    strip: int = EDGE_STRIP,
+) -> torch.Tensor:
+    """Loss weights of square crops of a sub-view: ``weight`` on the pixels within ``strip``
+    pixels of the sub-view's edge, 1 elsewhere.
+
+    Parameters
+    ----------
+    origins : torch.Tensor
+        ``(B, 2)`` integer ``(row, col)`` of each crop's first pixel in the sub-view.
+    size : int
+        Side of the crops.
+    sub_view_size : int
+        Side of the sub-view.
+    weight : float
+        Weight of the edge pixels.
+    strip : int
+        Width of the edge strips in pixels.
+
+    Returns
+    -------
+    torch.Tensor
+        ``(B, 1, size, size)`` float32.
+
+    Examples
+    --------
+    >>> w = edge_weights(torch.tensor([[0, 8]]), size=4, sub_view_size=12, weight=5.0, strip=2)
+    >>> w[0, 0].tolist()  # the top two rows and, at columns 10-11, the right edge
+    [[5.0, 5.0, 5.0, 5.0], [5.0, 5.0, 5.0, 5.0], [1.0, 1.0, 5.0, 5.0], [1.0, 1.0, 5.0, 5.0]]
+    """
+    pixels = origins.to(torch.int64)[:, :, None] + torch.arange(size)  # (B, 2, size)
+    near = (pixels < strip) | (pixels >= sub_view_size - strip)
+    edge = near[:, 0, :, None] | near[:, 1, None, :]
+    return (1.0 + (weight - 1.0) * edge.float())[:, None]
 
 
 def svcode_loss(

@@ -50,7 +50,7 @@ from ..methods.model_file import load_model, save_model
 from ..network import ModelConfig, SVCoDe, with_lens_context
 from .dataset import TrainingData
 from .distributed import DistInfo, all_reduce_sum, barrier
-from .loss import joint_loss, psnr_per_sample, ssim_per_sample
+from .loss import edge_weights, joint_loss, psnr_per_sample, ssim_per_sample
 from .sampler import EpochSampler, derive_seed
 from .tasks import Stages, training_task
 
@@ -98,6 +98,11 @@ class TrainConfig:
         Size of the fixed validation subset; ``None``: every validation sample.
     alpha, beta : float
         Weights of ``1 − SSIM`` and MSE in the loss.
+    edge_weight : float
+        Weight of the squared error on the pixels within
+        :data:`~svcode_core.training.loss.EDGE_STRIP` pixels of the sub-view's edge (1: the
+        same as elsewhere). A pixel of the edge strip lies in fewer training patches than one
+        further in, and has neighbours on one side only.
     seed : int
         Seeds the initialisation, the patch draws and the noise.
     workers : int
@@ -119,6 +124,7 @@ class TrainConfig:
     val_patches: int | None = None
     alpha: float = 1.0
     beta: float = 1.0
+    edge_weight: float = 1.0
     seed: int = 0
     workers: int = 0
     same_origin: int = 1
@@ -137,7 +143,7 @@ class TrainConfig:
             check_int(name, getattr(self, name), 0)
         if not 0 <= check_number("min_lr_ratio", self.min_lr_ratio) <= 1:
             raise ConfigError(f"min_lr_ratio: must lie in [0, 1], got {self.min_lr_ratio!r}")
-        for name in ("alpha", "beta"):
+        for name in ("alpha", "beta", "edge_weight"):
             check_number(name, getattr(self, name), 0)
         return self
 
@@ -271,6 +277,18 @@ class Trainer:
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.autocast):
             return self.task.outputs(net, batch, self.system)
 
+    def _loss_weights(self, batch: dict[str, torch.Tensor]) -> torch.Tensor | None:
+        """Per-pixel weights of the squared error (:func:`~.loss.edge_weights`), or
+        ``None`` when every pixel weighs the same. Samples without an origin are whole
+        sub-views."""
+        if self.config.edge_weight == 1.0:
+            return None
+        target = batch["object"]
+        origins = batch.get("origin", torch.zeros(len(target), 2, dtype=torch.int64))
+        weights = edge_weights(origins, target.shape[-1], self.system.sub_view_size,
+                               self.config.edge_weight)
+        return weights.to(target.device)
+
     @property
     def metrics(self) -> tuple[str, ...]:
         """Validation metrics: the loss, then PSNR and SSIM of the reconstruction and of
@@ -288,8 +306,8 @@ class Trainer:
         """
         batch = self._to_device(batch)
         self.net.train()
-        loss, parts = joint_loss(self._forward(self.net, batch),
-                                 self.config.alpha, self.config.beta)
+        loss, parts = joint_loss(self._forward(self.net, batch), self.config.alpha,
+                                 self.config.beta, self._loss_weights(batch))
         value = float(loss.detach())
         if not math.isfinite(value):
             raise FloatingPointError(
@@ -342,8 +360,10 @@ class Trainer:
         with self.task.evaluating(self.model):
             for start in range(0, len(self.val_indices), size):
                 items = [self.val_set[i] for i in self.val_indices[start : start + size]]
-                stages = self._forward(self.model, self._to_device(self.task.collate(items)))
-                loss, _ = joint_loss(stages, self.config.alpha, self.config.beta)
+                batch = self._to_device(self.task.collate(items))
+                stages = self._forward(self.model, batch)
+                loss, _ = joint_loss(stages, self.config.alpha, self.config.beta,
+                                     self._loss_weights(batch))
                 n = len(items)
                 values = {"loss": float(loss) * n}
                 for stage, (prediction, target) in stages.items():
