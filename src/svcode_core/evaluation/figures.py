@@ -9,10 +9,11 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+import torch  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 
 from ..config import SystemConfig  # noqa: E402
-from ..physics.geometry import sub_view_origins  # noqa: E402
+from ..physics.geometry import pad_sensor_frame, sub_view_origins  # noqa: E402
 
 __all__ = ["calibration_figure", "montage", "overview_figure", "psf_montage"]
 
@@ -82,9 +83,8 @@ def overview_figure(
     count = 1 + len(panels)
     fig, axes = plt.subplots(1, count, figsize=(3.6 * count, 4.0), squeeze=False)
     axes = axes[0]
-    padded = np.zeros(system.padded_shape, dtype=np.float32)
-    padded[system.sensor_window] = measurement
-    axes[0].imshow(padded, cmap="gray")
+    padded = pad_sensor_frame(torch.as_tensor(measurement, dtype=torch.float32), system)
+    axes[0].imshow(padded.numpy(), cmap="gray")
     rows, cols = system.sensor_window
     axes[0].add_patch(Rectangle((cols.start - 0.5, rows.start - 0.5), cols.stop - cols.start,
                                 rows.stop - rows.start, fill=False, ec="white", ls="--", lw=0.8))
