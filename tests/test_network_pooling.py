@@ -16,29 +16,36 @@ from svcode_core.network.blocks import pooled_mean, spread
 RTOL = 64 * torch.finfo(torch.float32).eps
 
 
-def window_start(index: int, size: int, cells: int) -> int:
-    """First cell of the run of ``size`` cells around cell ``index``, kept inside ``cells``."""
-    return min(max(index - size // 2, 0), cells - size)
+def window_starts(index: int, size: int, cells: int) -> list[slice]:
+    """The runs of ``size`` cells centred on cell ``index`` (one for an odd size, the two
+    half a cell either side for an even one), each kept inside ``cells`` cells."""
+    firsts = {index - size // 2, index - size // 2 + 1 - size % 2}
+    return [slice(min(max(f, 0), cells - size), None) for f in sorted(firsts)]
 
 
 def direct_window_means(x: np.ndarray, window: int, cell: int) -> np.ndarray:
-    """Per grid cell, the float64 mean of ``x`` over its ``window``-pixel square (whole
-    axes where the window covers them: then that axis has one cell)."""
+    """Per grid cell, the float64 mean of ``x`` over its centred ``window``-pixel square,
+    averaged over the squares either side of the centre where the window has an even
+    number of cells (whole axes where the window covers them: then that axis has one
+    cell)."""
     rows, cols = (n // cell for n in x.shape[-2:])
     size = window // cell
     row_cells = range(rows) if size < rows else [None]
     col_cells = range(cols) if size < cols else [None]
     out = np.empty((*x.shape[:-2], len(row_cells), len(col_cells)))
     for i, r in enumerate(row_cells):
-        rs = slice(None) if r is None else slice(window_start(r, size, rows) * cell, None)
+        row_runs = [slice(None)] if r is None else window_starts(r, size, rows)
         for j, c in enumerate(col_cells):
-            cs = slice(None) if c is None else slice(window_start(c, size, cols) * cell, None)
-            square = x[..., rs, cs]
-            if r is not None:
-                square = square[..., :window, :]
-            if c is not None:
-                square = square[..., :window]
-            out[..., i, j] = square.astype(np.float64).mean((-2, -1))
+            col_runs = [slice(None)] if c is None else window_starts(c, size, cols)
+            means = []
+            for rs in row_runs:
+                for cs in col_runs:
+                    rows_px = slice(None) if rs.start is None else slice(
+                        rs.start * cell, rs.start * cell + window)
+                    cols_px = slice(None) if cs.start is None else slice(
+                        cs.start * cell, cs.start * cell + window)
+                    means.append(x[..., rows_px, cols_px].astype(np.float64).mean((-2, -1)))
+            out[..., i, j] = np.mean(means, axis=0)
     return out
 
 
@@ -51,6 +58,17 @@ def test_window_means_match_a_direct_float64_computation(shape, window, cell):
     got = pooled_mean(x, window, cell).numpy()
     reference = direct_window_means(x.numpy(), window, cell)
     np.testing.assert_allclose(got, reference, rtol=RTOL, atol=0)
+
+
+@pytest.mark.parametrize("window", [12, 16])  # 3 and 4 cells: odd and even
+def test_a_linear_ramp_is_its_own_local_mean_away_from_the_edges(window):
+    """A centred mean of a linear function is its value at the centre: the cell's mean,
+    wherever the square lies inside the map."""
+    x = torch.arange(64.0).view(1, 1, 1, 64).expand(1, 1, 8, 64)
+    cells = x.view(1, 1, 8, 16, 4).mean(-1)[:, :, :2]  # the cells' own means, 4-px cells
+    got = pooled_mean(x, window, 4)[0, 0, 0]
+    inside = slice(window // 8, 16 - window // 8)
+    torch.testing.assert_close(got[inside], cells[0, 0, 0, inside])
 
 
 def test_a_window_covering_the_map_is_the_plain_mean():

@@ -67,7 +67,7 @@ class SimpleChannelAttention(nn.Module):
 
 def pooled_mean(x: torch.Tensor, window: int = 0, cell: int = 1) -> torch.Tensor:
     """The spatial mean that channel attention sees: over the whole map, or per pixel over
-    a ``window``-pixel square around it, kept inside the map.
+    a ``window``-pixel square centred on it, kept inside the map.
 
     A network trained on patches of ``P`` pixels has seen means over ``P × P`` squares
     only; on a larger tile, ``window = P`` (at this level's scale) gives every pixel such a
@@ -75,7 +75,10 @@ def pooled_mean(x: torch.Tensor, window: int = 0, cell: int = 1) -> torch.Tensor
     beyond ``P`` (near the map's edge the square is shifted inwards, as a training patch's
     edge pixels see their patch). The local means are taken on a grid of ``cell × cell``
     cells, to be interpolated back to the pixels by :func:`spread`: they vary slowly, and
-    per pixel they would cost more than the block they serve.
+    per pixel they would cost more than the block they serve. A cell's square is centred
+    on the cell's centre, where :func:`spread` places its value (for an even number of
+    cells per side, the mean of the two squares half a cell either side), so a linear
+    ramp is its own local mean away from the edges.
 
     Parameters
     ----------
@@ -98,7 +101,7 @@ def pooled_mean(x: torch.Tensor, window: int = 0, cell: int = 1) -> torch.Tensor
     >>> pooled_mean(x).flatten().tolist()
     [3.5]
     >>> pooled_mean(x, window=4, cell=2)[0, 0, 0].tolist()  # squares of 4 columns
-    [1.5, 1.5, 3.5, 5.5]
+    [1.5, 2.5, 4.5, 5.5]
     """
     h, w = x.shape[-2:]
     if window <= 0 or (window >= h and window >= w):
@@ -109,16 +112,21 @@ def pooled_mean(x: torch.Tensor, window: int = 0, cell: int = 1) -> torch.Tensor
 
 
 def _box_mean(x: torch.Tensor, dim: int, size: int) -> torch.Tensor:
-    """Mean over ``size`` consecutive entries along ``dim`` around each entry, the run
-    shifted inside the axis at its ends (the whole axis if it is shorter)."""
+    """Mean over ``size`` consecutive entries along ``dim`` centred on each entry, the run
+    shifted inside the axis at its ends (the whole axis if it is shorter). An even run
+    has no middle entry: the mean of the two runs either side of the centre is taken."""
     n = x.shape[dim]
     if size >= n:
         return x.mean(dim, keepdim=True)
     sums = torch.cumsum(x, dim)
     sums = torch.cat([torch.zeros_like(sums.narrow(dim, 0, 1)), sums], dim)
     runs = sums.narrow(dim, size, n - size + 1) - sums.narrow(dim, 0, n - size + 1)
-    start = (torch.arange(n, device=x.device) - size // 2).clamp(0, n - size)
-    return runs.index_select(dim, start) / size
+    first = torch.arange(n, device=x.device) - size // 2
+    mean = runs.index_select(dim, first.clamp(0, n - size)) / size
+    if size % 2:
+        return mean
+    later = runs.index_select(dim, (first + 1).clamp(0, n - size)) / size
+    return (mean + later) / 2
 
 
 def spread(weights: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
