@@ -16,11 +16,15 @@ from svcode_core.network.blocks import pooled_mean, spread
 RTOL = 64 * torch.finfo(torch.float32).eps
 
 
-def window_starts(index: int, size: int, cells: int) -> list[slice]:
-    """The runs of ``size`` cells centred on cell ``index`` (one for an odd size, the two
-    half a cell either side for an even one), each kept inside ``cells`` cells."""
+def window_runs(index: int, size: int, cells: int, window: int, cell: int) -> list[slice]:
+    """Pixels of the runs of ``size`` cells centred on cell ``index`` (one for an odd size,
+    the two half a cell either side for an even one), each kept inside ``cells`` cells;
+    the whole axis when the window covers it."""
+    if size >= cells:
+        return [slice(None)]
     firsts = {index - size // 2, index - size // 2 + 1 - size % 2}
-    return [slice(min(max(f, 0), cells - size), None) for f in sorted(firsts)]
+    starts = (min(max(f, 0), cells - size) * cell for f in sorted(firsts))
+    return [slice(start, start + window) for start in starts]
 
 
 def direct_window_means(x: np.ndarray, window: int, cell: int) -> np.ndarray:
@@ -30,22 +34,12 @@ def direct_window_means(x: np.ndarray, window: int, cell: int) -> np.ndarray:
     cell)."""
     rows, cols = (n // cell for n in x.shape[-2:])
     size = window // cell
-    row_cells = range(rows) if size < rows else [None]
-    col_cells = range(cols) if size < cols else [None]
-    out = np.empty((*x.shape[:-2], len(row_cells), len(col_cells)))
-    for i, r in enumerate(row_cells):
-        row_runs = [slice(None)] if r is None else window_starts(r, size, rows)
-        for j, c in enumerate(col_cells):
-            col_runs = [slice(None)] if c is None else window_starts(c, size, cols)
-            means = []
-            for rs in row_runs:
-                for cs in col_runs:
-                    rows_px = slice(None) if rs.start is None else slice(
-                        rs.start * cell, rs.start * cell + window)
-                    cols_px = slice(None) if cs.start is None else slice(
-                        cs.start * cell, cs.start * cell + window)
-                    means.append(x[..., rows_px, cols_px].astype(np.float64).mean((-2, -1)))
-            out[..., i, j] = np.mean(means, axis=0)
+    out = np.empty((*x.shape[:-2], 1 if size >= rows else rows, 1 if size >= cols else cols))
+    for i, j in np.ndindex(out.shape[-2:]):
+        means = [x[..., rs, cs].astype(np.float64).mean((-2, -1))
+                 for rs in window_runs(i, size, rows, window, cell)
+                 for cs in window_runs(j, size, cols, window, cell)]
+        out[..., i, j] = np.mean(means, axis=0)
     return out
 
 

@@ -21,6 +21,9 @@ arm="$1"
 here="$(cd "$(dirname "$0")" && pwd)"
 v2="$here/../cm2-mini-v2"
 base="$v2/run/best.safetensors"
+# mse-long3 and edge differ only in the edge weight
+long3=(--init "$here/mse-long2/best.safetensors" --mse-weight 100 --epochs 8
+       --lr 2e-4 --warmup-steps 100 --seed 4)
 case "$arm" in
   context) extra=(--init "$base" --lens-context --epochs 4);;
   mse) extra=(--init "$base" --mse-weight 100 --epochs 2);;
@@ -31,10 +34,8 @@ case "$arm" in
                   --lr 4e-4 --warmup-steps 100 --seed 2);;
   mse-long2) extra=(--init "$here/mse-long/best.safetensors" --mse-weight 100 --epochs 8
                    --lr 3e-4 --warmup-steps 100 --seed 3);;
-  mse-long3) extra=(--init "$here/mse-long2/best.safetensors" --mse-weight 100 --epochs 8
-                   --lr 2e-4 --warmup-steps 100 --seed 4);;
-  edge) extra=(--init "$here/mse-long2/best.safetensors" --mse-weight 100 --epochs 8
-              --lr 2e-4 --warmup-steps 100 --seed 4 --edge-weight 4);;
+  mse-long3) extra=("${long3[@]}");;
+  edge) extra=("${long3[@]}" --edge-weight 4);;
   *) echo "finetune: context, mse, context-mse, mse-no-coordgate, mse-no-pe, mse-long, mse-long2, mse-long3 or edge" >&2
      exit 2;;
 esac
