@@ -11,6 +11,7 @@ import torch
 from test_cm2 import gaussian_psfs
 
 from svcode_core.config import SystemConfig
+from svcode_core.evaluation.metrics import field_zones
 from svcode_core.methods.model_file import load_model
 from svcode_core.network import ModelConfig
 from svcode_core.physics.cm2 import CM2Operator
@@ -24,7 +25,7 @@ from svcode_core.training import (
     Trainer,
     TrainingData,
     check_disjoint_view_patches,
-    edge_weights,
+    field_weights,
     generate_dataset,
     joint_loss,
     split_frames,
@@ -252,22 +253,35 @@ def test_joint_loss_sums_both_stages():
         stage_loss(torch.rand(1, 1, 8, 8), torch.rand(1, 1, 8, 8))
 
 
-def test_edge_weights_mark_the_sub_view_edge_strips():
+def test_field_weights_mark_the_sub_view_edge_strips():
     size, sub_view, strip = 24, 64, 5
     rows, cols = np.indices((sub_view, sub_view))
     distance = np.minimum.reduce([rows, cols, sub_view - 1 - rows, sub_view - 1 - cols])
     whole = np.where(distance < strip, 4.0, 1.0)  # the sub-view's weights, built directly
     origins = torch.tensor([[0, 0], [20, 40], [40, 17], [20, 20]])
-    weights = edge_weights(origins, size, sub_view, 4.0, strip)
+    weights = field_weights(origins, size, sub_view, 4.0, strip=strip)
     assert weights.shape == (4, 1, size, size) and weights.dtype == torch.float32
     for (r, c), crop in zip(origins.tolist(), weights[:, 0].numpy(), strict=True):
         np.testing.assert_array_equal(crop, whole[r : r + size, c : c + size])
     assert (weights[3] == 1).all()  # a crop clear of the edges
 
 
+def test_field_weights_mark_the_benchmark_ring():
+    size, sub_view = 40, 96
+    ring = field_zones(sub_view)["ring"]  # the benchmark's own zone
+    origins = torch.tensor([[0, 0], [30, 50], [56, 0]])
+    weights = field_weights(origins, size, sub_view, edge=3.0, ring=2.0, strip=4)
+    rows, cols = np.indices((sub_view, sub_view))
+    edge = np.minimum.reduce([rows, cols, sub_view - 1 - rows, sub_view - 1 - cols]) < 4
+    whole = np.where(edge, 3.0, 1.0) * np.where(ring, 2.0, 1.0)
+    for (r, c), crop in zip(origins.tolist(), weights[:, 0].numpy(), strict=True):
+        np.testing.assert_array_equal(crop, whole[r : r + size, c : c + size])
+    assert set(np.unique(weights.numpy())) == {1.0, 2.0, 6.0}  # no edge pixel outside the ring
+
+
 def test_edge_weight_scales_the_squared_error_of_the_edge_only():
     target = torch.zeros(1, 1, 32, 32)
-    weights = edge_weights(torch.tensor([[0, 0]]), 32, 96, 5.0)
+    weights = field_weights(torch.tensor([[0, 0]]), 32, 96, 5.0)
     at_edge, inside = target.clone(), target.clone()
     at_edge[..., :4, 20:24] = 0.5
     inside[..., 20:24, 20:24] = 0.5
@@ -301,13 +315,14 @@ def test_one_step_lowers_the_loss_on_a_fixed_batch(tiny_data, tmp_path):
     assert loss() < before
 
 
-def test_edge_weight_enters_the_training_loss(tiny_data, tmp_path):
-    trainer = _trainer(tiny_data, tmp_path, edge_weight=3.0)
+def test_edge_and_ring_weights_enter_the_training_loss(tiny_data, tmp_path):
+    trainer = _trainer(tiny_data, tmp_path, edge_weight=3.0, ring_weight=2.0)
     items = [trainer.val_set[i] for i in range(2)]
     batch = trainer.task.collate(items)
     with torch.no_grad():
         d, r = trainer.model(batch["views"], batch["origin"], tiny_data.system.sub_view_size)
-    weights = edge_weights(batch["origin"], r.shape[-1], tiny_data.system.sub_view_size, 3.0)
+    weights = field_weights(batch["origin"], r.shape[-1], tiny_data.system.sub_view_size, 3.0,
+                            ring=2.0)
     expected = float(joint_loss({"demix": (d, batch["demixed"]), "recon": (r, batch["object"])},
                                 weights=weights)[0])
     assert trainer.train_step(batch)["loss"] == pytest.approx(expected, rel=1e-5)

@@ -9,6 +9,7 @@ from pathlib import Path
 import torch
 
 from ..config import SystemConfig
+from ..evaluation.metrics import RING_RADIUS
 from ..methods.model_file import read_model_metadata
 from ..methods.registry import LEARNED_METHODS, TRAINABLE_METHODS, method
 from ..pretrained import require_bundled_weights
@@ -78,6 +79,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="weight of the squared error on the outer "
                         f"{EDGE_STRIP} pixels of the sub-view (its edge strips: fewer "
                         "patches see them; default 1, as elsewhere)")
+    parser.add_argument("--ring-weight", type=float, default=defaults.ring_weight,
+                        help="weight of the squared error in the outer ring of the field "
+                        f"(normalised radius above {RING_RADIUS}, the benchmark's ring: seen by "
+                        "fewer lenses, so noisier; default 1, as elsewhere)")
     parser.add_argument("--patches-per-epoch", type=int,
                         help="training patches drawn per epoch (default: all)")
     parser.add_argument("--val-patches", type=int,
@@ -124,6 +129,7 @@ def run(args: argparse.Namespace) -> int:
         epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
         min_lr_ratio=args.min_lr_ratio, warmup_steps=args.warmup_steps, grad_clip=args.grad_clip,
         alpha=args.ssim_weight, beta=args.mse_weight, edge_weight=args.edge_weight,
+        ring_weight=args.ring_weight,
         patches_per_epoch=args.patches_per_epoch, val_patches=args.val_patches,
         seed=args.seed, workers=args.workers, same_origin=args.same_origin,
     )

@@ -4,7 +4,7 @@ loss, tasks and trainer."""
 from .dataset import DataRecipe, TrainingData, generate_dataset, split_frames, training_object
 from .distributed import DistInfo, init_distributed, shutdown_distributed
 from .loss import (
-    edge_weights,
+    field_weights,
     joint_loss,
     psnr_per_sample,
     ssim_per_sample,
@@ -27,7 +27,7 @@ __all__ = [
     "Trainer",
     "TrainingData",
     "check_disjoint_view_patches",
-    "edge_weights",
+    "field_weights",
     "generate_dataset",
     "init_distributed",
     "joint_loss",

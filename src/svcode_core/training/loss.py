@@ -2,8 +2,8 @@
 
 ``L = L_demix + L_recon`` with ``L_stage = α (1 − SSIM) + β MSE`` (α = β = 1 in the paper;
 the learned baselines have the reconstruction stage alone, :func:`joint_loss`). The MSE may
-weigh some pixels more than others (:func:`edge_weights`: the sub-view's edge strips, which
-a patch-trained model sees least and reconstructs worst). SSIM is
+weigh some pixels more than others (:func:`field_weights`: the sub-view's edge strips, which
+a patch-trained model sees least, and the outer ring, which it reconstructs worst). SSIM is
 pytorch-msssim's Gaussian-window SSIM (window 11, σ 1.5, ``data_range = 1``), averaged over
 channels and batch. Everything is computed in float32, also when the network
 ran under bf16 autocast.
@@ -23,14 +23,14 @@ from collections.abc import Mapping
 import torch
 from pytorch_msssim import ssim
 
-from ..evaluation.metrics import psnr_from_mse
+from ..evaluation.metrics import RING_RADIUS, psnr_from_mse
 
-__all__ = ["EDGE_STRIP", "edge_weights", "joint_loss", "psnr_per_sample", "ssim_per_sample",
+__all__ = ["EDGE_STRIP", "field_weights", "joint_loss", "psnr_per_sample", "ssim_per_sample",
            "stage_loss", "svcode_loss"]
 
 #: Smallest MSE used by :func:`psnr_per_sample` (caps the PSNR of a perfect patch at 100 dB).
 MIN_MSE = 1e-10
-#: Width in sub-view pixels of the edge strips that :func:`edge_weights` weighs.
+#: Width in sub-view pixels of the edge strips that :func:`field_weights` weighs.
 EDGE_STRIP = 16
 
 
@@ -62,7 +62,7 @@ def stage_loss(
         Weights of the SSIM and MSE terms.
     weights : torch.Tensor, optional
         Per-pixel weights of the squared error, broadcastable to ``(B, C, H, W)``
-        (e.g. :func:`edge_weights`); the MSE is then the mean of the weighted squares.
+        (e.g. :func:`field_weights`); the MSE is then the mean of the weighted squares.
 
     Examples
     --------
@@ -103,12 +103,14 @@ def joint_loss(
     return sum(losses.values()), parts
 
 
-def edge_weights(
-    origins: torch.Tensor, size: int, sub_view_size: int, weight: float,
-    strip: int = EDGE_STRIP,
+def field_weights(
+    origins: torch.Tensor, size: int, sub_view_size: int, edge: float = 1.0,
+    ring: float = 1.0, strip: int = EDGE_STRIP,
 ) -> torch.Tensor:
-    """Loss weights of square crops of a sub-view: ``weight`` on the pixels within ``strip``
-    pixels of the sub-view's edge, 1 elsewhere.
+    """Loss weights of square crops of a sub-view: ``edge`` on the pixels within ``strip``
+    pixels of the sub-view's edge, ``ring`` on the outer ring (normalised field radius
+    above :data:`~svcode_core.evaluation.metrics.RING_RADIUS`, the benchmark's zone), their
+    product where both hold, 1 elsewhere.
 
     Parameters
     ----------
@@ -118,8 +120,8 @@ def edge_weights(
         Side of the crops.
     sub_view_size : int
         Side of the sub-view.
-    weight : float
-        Weight of the edge pixels.
+    edge, ring : float
+        Weights of the edge strips and of the outer ring.
     strip : int
         Width of the edge strips in pixels.
 
@@ -130,14 +132,20 @@ def edge_weights(
 
     Examples
     --------
-    >>> w = edge_weights(torch.tensor([[0, 8]]), size=4, sub_view_size=12, weight=5.0, strip=2)
+    >>> w = field_weights(torch.tensor([[0, 8]]), size=4, sub_view_size=12, edge=5.0, strip=2)
     >>> w[0, 0].tolist()  # the top two rows and, at columns 10-11, the right edge
     [[5.0, 5.0, 5.0, 5.0], [5.0, 5.0, 5.0, 5.0], [1.0, 1.0, 5.0, 5.0], [1.0, 1.0, 5.0, 5.0]]
+    >>> w = field_weights(torch.tensor([[0, 0]]), size=6, sub_view_size=6, ring=2.0)
+    >>> w[0, 0, :3].tolist()  # the top half of a whole 6-px sub-view: its corners are ring
+    [[2.0, 2.0, 2.0, 2.0, 2.0, 2.0], [2.0, 2.0, 1.0, 1.0, 2.0, 2.0], [2.0, 1.0, 1.0, 1.0, 1.0, 2.0]]
     """
     pixels = origins.to(torch.int64)[:, :, None] + torch.arange(size)  # (B, 2, size)
     near = (pixels < strip) | (pixels >= sub_view_size - strip)
-    edge = near[:, 0, :, None] | near[:, 1, None, :]
-    return (1.0 + (weight - 1.0) * edge.float())[:, None]
+    at_edge = (near[:, 0, :, None] | near[:, 1, None, :]).float()
+    # the normalised coordinate of pixel i, 2 i / (S - 1) - 1 (physics.geometry)
+    u = 2.0 * pixels.double() / (sub_view_size - 1) - 1.0
+    in_ring = (u[:, 0, :, None] ** 2 + u[:, 1, None, :] ** 2 > RING_RADIUS**2).float()
+    return ((1.0 + (edge - 1.0) * at_edge) * (1.0 + (ring - 1.0) * in_ring))[:, None]
 
 
 def svcode_loss(

@@ -50,7 +50,7 @@ from ..methods.model_file import load_model, save_model
 from ..network import ModelConfig, SVCoDe, with_lens_context
 from .dataset import TrainingData
 from .distributed import DistInfo, all_reduce_sum, barrier
-from .loss import edge_weights, joint_loss, psnr_per_sample, ssim_per_sample
+from .loss import field_weights, joint_loss, psnr_per_sample, ssim_per_sample
 from .sampler import EpochSampler, derive_seed
 from .tasks import Stages, training_task
 
@@ -103,6 +103,11 @@ class TrainConfig:
         :data:`~svcode_core.training.loss.EDGE_STRIP` pixels of the sub-view's edge (1: the
         same as elsewhere). A pixel of the edge strip lies in fewer training patches than one
         further in, and has neighbours on one side only.
+    ring_weight : float
+        Weight of the squared error in the outer ring (normalised field radius above
+        :data:`~svcode_core.evaluation.metrics.RING_RADIUS`; 1: the same as elsewhere). The
+        ring is seen by fewer lenses through dimmer, more aberrated PSFs, so noise costs it
+        more than the centre.
     seed : int
         Seeds the initialisation, the patch draws and the noise.
     workers : int
@@ -125,6 +130,7 @@ class TrainConfig:
     alpha: float = 1.0
     beta: float = 1.0
     edge_weight: float = 1.0
+    ring_weight: float = 1.0
     seed: int = 0
     workers: int = 0
     same_origin: int = 1
@@ -143,7 +149,7 @@ class TrainConfig:
             check_int(name, getattr(self, name), 0)
         if not 0 <= check_number("min_lr_ratio", self.min_lr_ratio) <= 1:
             raise ConfigError(f"min_lr_ratio: must lie in [0, 1], got {self.min_lr_ratio!r}")
-        for name in ("alpha", "beta", "edge_weight"):
+        for name in ("alpha", "beta", "edge_weight", "ring_weight"):
             check_number(name, getattr(self, name), 0)
         return self
 
@@ -278,15 +284,15 @@ class Trainer:
             return self.task.outputs(net, batch, self.system)
 
     def _loss_weights(self, batch: dict[str, torch.Tensor]) -> torch.Tensor | None:
-        """Per-pixel weights of the squared error (:func:`~.loss.edge_weights`), or
+        """Per-pixel weights of the squared error (:func:`~.loss.field_weights`), or
         ``None`` when every pixel weighs the same. Samples without an origin are whole
         sub-views."""
-        if self.config.edge_weight == 1.0:
+        if self.config.edge_weight == 1.0 and self.config.ring_weight == 1.0:
             return None
         target = batch["object"]
         origins = batch.get("origin", torch.zeros(len(target), 2, dtype=torch.int64))
-        weights = edge_weights(origins, target.shape[-1], self.system.sub_view_size,
-                               self.config.edge_weight)
+        weights = field_weights(origins, target.shape[-1], self.system.sub_view_size,
+                                self.config.edge_weight, self.config.ring_weight)
         return weights.to(target.device)
 
     @property
