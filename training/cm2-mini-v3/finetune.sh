@@ -13,7 +13,7 @@
 #   mse-long3         8 more epochs of mse-long2's model (lr 2e-4, seed 4): and again
 #   edge              the mse-long3 arm with the squared error of the sub-view's 16-px edge
 #                     strips weighted 4 times: does the outer ring catch up with the centre?
-#   ring2, ring4      6 more epochs of edge's model (lr 2e-4, seed 5, edge weight 4) with the
+#   ring2, ring4      4 more epochs of edge's model (lr 2e-4, seed 5, edge weight 4) with the
 #                     squared error of the outer ring (the benchmark's zone) weighted 2 or 4
 #                     times: does the ring close the gap it keeps under haze and few photons?
 # The v2 model is ../cm2-mini-v2/run/best.safetensors, its ablations'
@@ -39,7 +39,7 @@ case "$arm" in
                    --lr 3e-4 --warmup-steps 100 --seed 3);;
   mse-long3) extra=("${long3[@]}");;
   edge) extra=("${long3[@]}" --edge-weight 4);;
-  ring2|ring4) extra=(--init "$here/edge/best.safetensors" --mse-weight 100 --epochs 6
+  ring2|ring4) extra=(--init "$here/edge/best.safetensors" --mse-weight 100 --epochs 4
                       --lr 2e-4 --warmup-steps 100 --seed 5 --edge-weight 4
                       --ring-weight "${arm#ring}");;
   *) echo "finetune: context, mse, context-mse, mse-no-coordgate, mse-no-pe, mse-long, mse-long2, mse-long3, edge, ring2 or ring4" >&2
