@@ -7,6 +7,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .coordgate import CoordGate, CoordGrid, tile_masks
+from .lattice import RowInterpolant
 
 __all__ = ["CoDeBlock", "LayerNorm2d", "SimpleChannelAttention", "SimpleGate", "ViewFusion",
            "pooled_mean", "spread"]
@@ -281,7 +282,10 @@ def _multiply(y: torch.Tensor, masks: tuple[torch.Tensor, ...]) -> torch.Tensor:
                    * _in_memory_order(_batched(masks), last))  # fmt: skip
         return _from_memory_order(product, last, y)
     for tile, mask in zip(_tiles(y, len(masks)), masks, strict=True):
-        tile.mul_(mask)
+        if isinstance(mask, RowInterpolant):
+            mask.multiply_(tile)
+        else:
+            tile.mul_(mask)
     return y
 
 
@@ -307,7 +311,10 @@ def _add_product(
     out = torch.empty_like(x, dtype=dtype)
     for o, xb, m, zb in zip(_tiles(out, batch), _tiles(x, batch), masks, _tiles(z, batch),
                             strict=True):
-        torch.addcmul(xb, m, zb, out=o)
+        if isinstance(m, RowInterpolant):
+            m.add_product(xb, zb, o)
+        else:
+            torch.addcmul(xb, m, zb, out=o)
     return out
 
 

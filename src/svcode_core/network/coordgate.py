@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from .lattice import LatticeAxis, interpolate
+from .lattice import LatticeAxis, RowInterpolant, interpolate, interpolate_once
 
 __all__ = ["CoordGate", "CoordGrid", "CoordMLP", "MaskCache", "MaskField", "tile_masks"]
 
@@ -273,12 +273,13 @@ class CoordGrid:
     def tile_masks(self, masks: Masks, channels_last: bool = True) -> list[Masks]:
         """Per tile, its masks ``(lenses, C, h, w)`` from masks ``(U, lenses, C, ., .)``
         computed at ``enc_row`` and ``enc_col``: interpolated from the lattice nodes when
-        ``lattice`` is set (in the features' layout), and repeated for tiles that share an
-        origin."""
+        ``lattice`` is set (in the features' layout; without gradient, large ones as
+        :class:`~.lattice.RowInterpolant`), and repeated for tiles that share an origin."""
         if self.lattice is None:
             per_origin = list(zip(*masks, strict=True))
         else:
-            per_origin = list(zip(*(interpolate(m, *self.lattice, channels_last)
+            lattice = interpolate_once if not torch.is_grad_enabled() else interpolate
+            per_origin = list(zip(*(lattice(m, *self.lattice, channels_last)
                                     for m in masks), strict=True))  # fmt: skip
         return self._per_tile(per_origin)
 
@@ -290,19 +291,26 @@ class CoordGrid:
 
         A recording's frames run the same tiles, so from the second frame on the masks are
         read, not interpolated (the interpolation is most of what lattice masks cost).
+        Large masks beyond the cache's budget are not written out at all: they come as
+        :class:`~.lattice.RowInterpolant`, finished where they are applied.
         """
         keys = [(name, place, dtype, channels_last) for place in self.places]
-        per_origin = [self.cache.get(key) for key in keys]
+        per_origin: list[Masks | tuple[RowInterpolant, ...] | None] = [
+            self.cache.get(key) for key in keys]
         missing = [u for u, masks in enumerate(per_origin) if masks is None]
         if missing:
             index = torch.tensor(missing, device=self.enc_row.device)
             nodes = compute(self.enc_row[index], self.enc_col[index])
             rows, cols = (axis.select(missing) for axis in self.lattice)
-            computed = zip(*(interpolate(m, rows, cols, channels_last) for m in nodes),
+            pixels = rows.position.shape[1] * cols.position.shape[1]
+            nbytes = sum(math.prod(m.shape[1:3]) for m in nodes) * pixels * dtype.itemsize
+            keep = self.cache.reserve(nbytes)  # False: none of them would fit
+            lattice = interpolate if keep else interpolate_once
+            computed = zip(*(lattice(m, rows, cols, channels_last) for m in nodes),
                            strict=True)  # fmt: skip
             for u, masks in zip(missing, computed, strict=True):
                 masks = tuple(m.to(dtype) for m in masks)
-                if self.cache.reserve(sum(m.nbytes for m in masks)):
+                if keep and self.cache.reserve(sum(m.nbytes for m in masks)):
                     # stored on their own: a view would keep the whole batch's tensor
                     masks = tuple(m.clone() if _shares_storage(m) else m for m in masks)
                     self.cache.put(keys[u], masks)
