@@ -6,7 +6,8 @@ Two scales:
 
 Variants: the plain NAFNet of the same widths (``coord_gate=False``); SV-CoDe with its
 masks on a lattice (``lattice``, the presets' default ``mask_spacing``: MLPs on coarse
-nodes, bilinear interpolation, no cache; ``lattice-cached``: each tile's interpolated
+nodes, bilinear interpolation, no cache, so masks too large for the processor's cache are
+applied band by band and never written out; ``lattice-cached``: each tile's interpolated
 masks kept in the 1 GiB cache, warm; ``lattice-cached-512`` the same with 512 MiB); and
 SV-CoDe with exact per-pixel masks (``mask_spacing = 0``, as models written before the
 lattice) computed on every call (``uncached``) or with the mask cache warm (``cached``:
@@ -218,7 +219,9 @@ def _markdown(rows: list[dict]) -> str:
         "memory above the level before the first call, fresh process per row (includes the "
         "mask cache). Cache budget 1 GiB; field: cache needed for a whole S × S sub-view "
         "(float32). `cached-full`: the tile is the whole sub-view (S = 480) so every mask is "
-        "cached. `lattice`: masks on the preset's lattice (`mask_spacing`), no cache; "
+        "cached. `lattice`: masks on the preset's lattice (`mask_spacing`), no cache (a "
+        "tile's masks too large for the processor's cache are applied band by band, never "
+        "written out); "
         "`lattice-cached`: the same with each tile's interpolated masks kept (1 GiB), as "
         "for every frame after the first of a recording; `lattice-cached-512`: with a "
         "512 MiB cache, which holds part of a paper tile's masks. "
