@@ -223,7 +223,9 @@ class CoDeBlock(nn.Module):
 
     def _tile_masks(self, x: torch.Tensor, grid: CoordGrid) -> list[tuple[torch.Tensor, ...]]:
         """Per tile, the folded masks ``(lenses, C, h, w)`` in the compute dtype: from the
-        cache, or computed (at the pixels, or at the lattice nodes and interpolated)."""
+        cache, or computed (at the pixels, or at the lattice nodes and interpolated; large
+        lattice masks used once as :class:`~.lattice.RowInterpolant`, finished by
+        :func:`_multiply` and :func:`_add_product` band by band)."""
         c, mlp = self.beta.shape[1], self.conv1.mlp
         dtype = _mask_dtype(x.device, mlp.w_out.dtype)
         channels_last = _is_channels_last(x)
