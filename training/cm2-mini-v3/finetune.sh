@@ -16,6 +16,8 @@
 #   ring2, ring4      4 more epochs of edge's model (lr 2e-4, seed 5, edge weight 4) with the
 #                     squared error of the outer ring (the benchmark's zone) weighted 2 or 4
 #                     times: does the ring close the gap it keeps under haze and few photons?
+#   ring2-long        8 more epochs of ring2's model (lr 2e-4, seed 6, the same weights): does
+#                     the centre come back while the ring keeps its gain?
 # The v2 model is ../cm2-mini-v2/run/best.safetensors, its ablations'
 # ../cm2-mini-v2/ablations/<name>/best.safetensors.
 # Usage (from the repository root): bash training/cm2-mini-v3/finetune.sh ARM
@@ -42,7 +44,9 @@ case "$arm" in
   ring2|ring4) extra=(--init "$here/edge/best.safetensors" --mse-weight 100 --epochs 4
                       --lr 2e-4 --warmup-steps 100 --seed 5 --edge-weight 4
                       --ring-weight "${arm#ring}");;
-  *) echo "finetune: context, mse, context-mse, mse-no-coordgate, mse-no-pe, mse-long, mse-long2, mse-long3, edge, ring2 or ring4" >&2
+  ring2-long) extra=(--init "$here/ring2/best.safetensors" --mse-weight 100 --epochs 8
+                     --lr 2e-4 --warmup-steps 100 --seed 6 --edge-weight 4 --ring-weight 2);;
+  *) echo "finetune: context, mse, context-mse, mse-no-coordgate, mse-no-pe, mse-long, mse-long2, mse-long3, edge, ring2, ring4 or ring2-long" >&2
      exit 2;;
 esac
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
