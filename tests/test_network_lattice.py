@@ -180,6 +180,16 @@ def test_row_interpolants_apply_the_interpolated_masks(channels_last, band_bytes
         torch.testing.assert_close(z, expected, rtol=1e-14, atol=0)
 
 
+@pytest.mark.parametrize("route", [interpolate, row_interpolants])
+def test_interpolation_stays_on_the_masks_device(route):
+    """The interpolation weights (built on the CPU) follow the masks to their device: the
+    meta device stands in for a GPU (a mix would fail there, and gives CPU tensors here)."""
+    _, axis = lattice_axis(torch.tensor([0, 20]), 24, 0, 8, S)
+    masks = torch.empty(2, 9, 4, axis.nodes, axis.nodes, device="meta")
+    for tile in route(masks, axis, axis, channels_last=False):
+        assert (tile.columns if isinstance(tile, lattice.RowInterpolant) else tile).is_meta
+
+
 def test_masks_used_once_are_written_out_only_when_they_fit_in_one_band():
     _, small = lattice_axis(torch.tensor([0]), 32, 0, 8, S)
     _, large = lattice_axis(torch.tensor([0]), 512, 0, 8, 1024)

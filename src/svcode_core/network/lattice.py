@@ -166,8 +166,8 @@ def interpolate(
             up[t, :, :, r : r + h, c : c + w].contiguous(memory_format=torch.channels_last)
             for t, (r, c) in enumerate(zip(rows.crops, cols.crops, strict=True))
         ]
-    weights_r = _hat_matrix(rows.position, rows.nodes).to(masks.dtype)  # (U, h, R)
-    weights_c = _hat_matrix(cols.position, cols.nodes).to(masks.dtype)  # (U, w, S)
+    weights_r = _hat_matrix(rows.position, rows.nodes).to(masks.device, masks.dtype)  # (U, h, R)
+    weights_c = _hat_matrix(cols.position, cols.nodes).to(masks.device, masks.dtype)  # (U, w, S)
     if not channels_last:  # (U, lenses, C, R, S) -> (U, lenses, C, h, w)
         along_cols = torch.matmul(masks, weights_c.transpose(1, 2)[:, None, None])
         return list(torch.matmul(weights_r[:, None, None], along_cols))
@@ -263,7 +263,7 @@ def row_interpolants(
     >>> torch.allclose(lazy.materialize(), full, rtol=1e-6, atol=1e-7)
     True
     """
-    weights_c = _hat_matrix(cols.position, cols.nodes).to(masks.dtype)  # (U, w, S)
+    weights_c = _hat_matrix(cols.position, cols.nodes).to(masks.device, masks.dtype)
     if channels_last:  # (U, lenses, C, R, S) -> (U, lenses, R, w, C)
         columns = torch.matmul(weights_c[:, None, None], masks.permute(0, 1, 3, 4, 2))
     else:  # -> (U, lenses, C, R, w)
@@ -279,7 +279,7 @@ def row_interpolants(
             if end == len(below) or below[end] != below[start] or end - start == longest:
                 bands.append((start, end, below[start]))
                 start = end
-        weights = (position - node).to(masks.dtype)
+        weights = (position - node).to(masks.device, masks.dtype)
         out.append(RowInterpolant(columns[tile], tuple(bands), weights, channels_last))
     return out
 
