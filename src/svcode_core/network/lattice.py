@@ -167,13 +167,20 @@ def interpolate(
             for t, (r, c) in enumerate(zip(rows.crops, cols.crops, strict=True))
         ]
     weights_r = _hat_matrix(rows.position, rows.nodes).to(masks.device, masks.dtype)  # (U, h, R)
-    weights_c = _hat_matrix(cols.position, cols.nodes).to(masks.device, masks.dtype)  # (U, w, S)
-    if not channels_last:  # (U, lenses, C, R, S) -> (U, lenses, C, h, w)
-        along_cols = torch.matmul(masks, weights_c.transpose(1, 2)[:, None, None])
+    along_cols = _along_columns(masks, cols, channels_last)
+    if not channels_last:  # (U, lenses, C, R, w) -> (U, lenses, C, h, w)
         return list(torch.matmul(weights_r[:, None, None], along_cols))
-    along_cols = torch.matmul(weights_c[:, None, None], masks.permute(0, 1, 3, 4, 2))
     out = torch.matmul(weights_r[:, None], along_cols.flatten(3))  # (U, lenses, h, w·C)
     return list(out.view(tiles, lenses, h, w, channels).permute(0, 1, 4, 2, 3))
+
+
+def _along_columns(masks: torch.Tensor, cols: LatticeAxis, channels_last: bool) -> torch.Tensor:
+    """Masks ``(U, lenses, C, R, S)`` at the nodes interpolated to the tile columns, in the
+    features' memory order: ``(U, lenses, R, w, C)``, or ``(U, lenses, C, R, w)``."""
+    weights_c = _hat_matrix(cols.position, cols.nodes).to(masks.device, masks.dtype)  # (U, w, S)
+    if channels_last:
+        return torch.matmul(weights_c[:, None, None], masks.permute(0, 1, 3, 4, 2))
+    return torch.matmul(masks, weights_c.transpose(1, 2)[:, None, None])
 
 
 @dataclass(frozen=True)
@@ -263,16 +270,12 @@ def row_interpolants(
     >>> torch.allclose(lazy.materialize(), full, rtol=1e-6, atol=1e-7)
     True
     """
-    weights_c = _hat_matrix(cols.position, cols.nodes).to(masks.device, masks.dtype)
-    if channels_last:  # (U, lenses, C, R, S) -> (U, lenses, R, w, C)
-        columns = torch.matmul(weights_c[:, None, None], masks.permute(0, 1, 3, 4, 2))
-    else:  # -> (U, lenses, C, R, w)
-        columns = torch.matmul(masks, weights_c.transpose(1, 2)[:, None, None])
+    columns = _along_columns(masks, cols, channels_last)
     row_bytes = columns[0].numel() // rows.nodes * columns.element_size()
     longest = max(1, BAND_BYTES // row_bytes)
     out = []
     for tile, position in enumerate(rows.position):
-        node = position.floor().clamp(max=rows.nodes - 2)
+        node = _node_below(position, rows.nodes)
         below = [int(j) for j in node.tolist()]
         bands, start = [], 0
         for end in range(1, len(below) + 1):
@@ -297,9 +300,14 @@ def interpolate_once(
     return route(masks, rows, cols, channels_last)
 
 
+def _node_below(position: torch.Tensor, nodes: int) -> torch.Tensor:
+    """The node at or before each position (the last pixel counts as in the last gap)."""
+    return position.floor().clamp(max=nodes - 2)
+
+
 def _hat_matrix(position: torch.Tensor, nodes: int) -> torch.Tensor:
     """``(U, n, nodes)`` linear-interpolation weights (two per row) for ``position``."""
-    below = position.floor().clamp(max=nodes - 2).long()
+    below = _node_below(position, nodes).long()
     frac = position - below
     weights = torch.zeros(*position.shape, nodes, dtype=torch.float64)
     weights.scatter_(-1, below.unsqueeze(-1), (1 - frac).unsqueeze(-1))

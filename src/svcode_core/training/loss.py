@@ -24,6 +24,7 @@ import torch
 from pytorch_msssim import ssim
 
 from ..evaluation.metrics import RING_RADIUS, psnr_from_mse
+from ..physics.geometry import normalized_coordinates
 
 __all__ = ["EDGE_STRIP", "field_weights", "joint_loss", "psnr_per_sample", "ssim_per_sample",
            "stage_loss", "svcode_loss"]
@@ -142,9 +143,11 @@ def field_weights(
     pixels = origins.to(torch.int64)[:, :, None] + torch.arange(size)  # (B, 2, size)
     near = (pixels < strip) | (pixels >= sub_view_size - strip)
     at_edge = (near[:, 0, :, None] | near[:, 1, None, :]).float()
-    # the normalised coordinate of pixel i, 2 i / (S - 1) - 1 (physics.geometry)
-    u = 2.0 * pixels.double() / (sub_view_size - 1) - 1.0
-    in_ring = (u[:, 0, :, None] ** 2 + u[:, 1, None, :] ** 2 > RING_RADIUS**2).float()
+    first = int(pixels.min())
+    axis = normalized_coordinates(sub_view_size, first, int(pixels.max()) - first + 1,
+                                  dtype=torch.float64)
+    u = axis[pixels - first]  # (B, 2, size)
+    in_ring = (torch.hypot(u[:, 0, :, None], u[:, 1, None, :]) > RING_RADIUS).float()
     return ((1.0 + (edge - 1.0) * at_edge) * (1.0 + (ring - 1.0) * in_ring))[:, None]
 
 
