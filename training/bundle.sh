@@ -17,5 +17,5 @@ svcode bench --methods svcode --merge --out bench/results
 python bench/stability.py
 SVCODE_UPDATE_SCREENSHOT=1 xvfb-run -a python -m pytest -q tests/test_napari_widgets.py \
   -k screenshot
-svcode demo
+svcode demo --out "$(mktemp -d)"
 python -m pytest -q -rxX tests/test_profiles.py tests/test_tile_plan.py

@@ -18,7 +18,7 @@
 #                     times: does the ring close the gap it keeps under haze and few photons?
 #   ring2-long        8 more epochs of ring2's model (lr 2e-4, seed 6, the same weights): does
 #                     the centre come back while the ring keeps its gain?
-#   context-ring      8 more epochs of context-scratch's model (lens context; lr 3e-4 after
+#   context-ring      6 more epochs of context-scratch's model (lens context; lr 3e-4 after
 #                     100 warm-up steps, seed 7, edge weight 4, ring weight 2): does the model
 #                     with the better centre catch up in the ring when the loss asks for it?
 # The v2 model is ../cm2-mini-v2/run/best.safetensors, its ablations'
@@ -50,7 +50,7 @@ case "$arm" in
   ring2-long) extra=(--init "$here/ring2/best.safetensors" --mse-weight 100 --epochs 8
                      --lr 2e-4 --warmup-steps 100 --seed 6 --edge-weight 4 --ring-weight 2);;
   context-ring) extra=(--init "$here/context-scratch/best.safetensors" --lens-context
-                       --mse-weight 100 --epochs 8 --lr 3e-4 --warmup-steps 100 --seed 7
+                       --mse-weight 100 --epochs 6 --lr 3e-4 --warmup-steps 100 --seed 7
                        --edge-weight 4 --ring-weight 2);;
   *) echo "finetune: context, mse, context-mse, mse-no-coordgate, mse-no-pe, mse-long, mse-long2, mse-long3, edge, ring2, ring4, ring2-long or context-ring" >&2
      exit 2;;
