@@ -21,6 +21,8 @@
 #   context-ring      6 more epochs of context-scratch's model (lens context; lr 3e-4 after
 #                     100 warm-up steps, seed 7, edge weight 4, ring weight 2): does the model
 #                     with the better centre catch up in the ring when the loss asks for it?
+#   context-ring4     8 more epochs of context-ring's (bundled) model, lr 2e-4, seed 8, ring
+#                     weight 4: does a heavier ring weight close more of its ring gap?
 # The v2 model is ../cm2-mini-v2/run/best.safetensors, its ablations'
 # ../cm2-mini-v2/ablations/<name>/best.safetensors.
 # Usage (from the repository root): bash training/cm2-mini-v3/finetune.sh ARM
@@ -52,7 +54,10 @@ case "$arm" in
   context-ring) extra=(--init "$here/context-scratch/best.safetensors" --lens-context
                        --mse-weight 100 --epochs 6 --lr 3e-4 --warmup-steps 100 --seed 7
                        --edge-weight 4 --ring-weight 2);;
-  *) echo "finetune: context, mse, context-mse, mse-no-coordgate, mse-no-pe, mse-long, mse-long2, mse-long3, edge, ring2, ring4, ring2-long or context-ring" >&2
+  context-ring4) extra=(--init "$here/context-ring/best.safetensors" --lens-context
+                        --mse-weight 100 --epochs 8 --lr 2e-4 --warmup-steps 100 --seed 8
+                        --edge-weight 4 --ring-weight 4);;
+  *) echo "finetune: context, mse, context-mse, mse-no-coordgate, mse-no-pe, mse-long, mse-long2, mse-long3, edge, ring2, ring4, ring2-long, context-ring or context-ring4" >&2
      exit 2;;
 esac
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
