@@ -12,7 +12,21 @@ set -euo pipefail
 weights="$1"
 [ -f "$weights" ] || { echo "bundle: no such file: $weights" >&2; exit 2; }
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-2}"
-cp "$weights" src/svcode_core/weights/cm2-mini.safetensors
+bundled=src/svcode_core/weights/cm2-mini.safetensors
+# --merge replaces the rows of the methods it runs, by label: when the new model's label
+# differs from the outgoing one's (e.g. it gains the lens context), drop the outgoing rows
+python - "$bundled" "$weights" <<'PY'
+import json, sys
+from pathlib import Path
+from svcode_core.evaluation.bench import model_label
+old, new = (model_label(Path(p)) for p in sys.argv[1:])
+report = Path("bench/results/regimes.json")
+if old != new:
+    data = json.loads(report.read_text(encoding="utf-8"))
+    data["rows"] = [row for row in data["rows"] if row["method"] != old]
+    report.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
+PY
+cp "$weights" "$bundled"
 svcode bench --methods svcode --merge --out bench/results
 python bench/stability.py
 SVCODE_UPDATE_SCREENSHOT=1 xvfb-run -a python -m pytest -q tests/test_napari_widgets.py \
