@@ -17,6 +17,7 @@ from svcode_core.phantoms import (
     _render_tree,
     beads,
     from_image,
+    isolated_cells,
     make_object,
     normalize_object,
 )
@@ -35,8 +36,20 @@ def test_kinds_range_dtype_shape_and_determinism(kind):
 
 
 def test_unknown_kind_lists_kinds():
-    with pytest.raises(ValueError, match="beads, cells, vessels, neurons, skimage, mixed"):
+    with pytest.raises(ValueError, match="beads, cells, vessels, neurons, skimage, isolated-cells, "
+                       "mixed, mixed-isolated"):
         make_object("galaxies", 64, 0)
+
+
+def test_isolated_cells_are_few_large_objects_in_a_dark_field():
+    for seed in range(5):
+        obj = isolated_cells(384, np.random.default_rng(seed), count=(3.0, 3.0), radius=30.0)
+        regions = label(obj > 0.05)
+        assert 1 <= regions.max() <= 3  # three cells, some may touch
+        assert (obj < 1e-3).mean() > 0.7  # dark around them
+        # a cell of semi-axes (30, >= 18) covers >= pi 30 18 px at half its level or more
+        assert np.bincount(regions.ravel())[1:].max() > np.pi * 30 * 18 * 0.5
+
 
 
 def test_bad_size_and_ranges_raise():

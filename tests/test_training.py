@@ -65,6 +65,11 @@ def test_split_is_a_seeded_partition():
     assert len(split_frames(2, 0.01, seed=0)[1]) == 1  # never an empty side
 
 
+def test_recipe_names_a_phantom_kind():
+    with pytest.raises(ValueError, match="object_kind: must be one of beads, cells"):
+        DataRecipe(frames=4, object_kind="galaxies").validate()
+
+
 def test_dataset_contents_and_manifest(tiny_data):
     system = tiny_data.system
     size = system.sub_view_size

@@ -40,6 +40,16 @@ def test_dataset_then_train(tiny_system, tiny_model_config, tmp_path, capsys):
     assert "differs from 'cm2-mini'" in capsys.readouterr().err
 
 
+def test_dataset_objects_choose_the_phantom_kind(tiny_system, tmp_path, capsys):
+    system_file = tiny_system.save(tmp_path / "tiny.json")
+    args = ["dataset", "--system", str(system_file), "--frames", "2", "--no-progress"]
+    assert main([*args, "--out", str(tmp_path / "cells"), "--objects", "isolated-cells"]) == 0
+    assert TrainingData(tmp_path / "cells").recipe.object_kind == "isolated-cells"
+    with pytest.raises(SystemExit):
+        main([*args, "--out", str(tmp_path / "bad"), "--objects", "galaxies"])
+    assert "invalid choice: 'galaxies'" in capsys.readouterr().err
+
+
 def test_train_from_initial_weights(tiny_system, tiny_model_config, tmp_path, capsys):
     from safetensors.torch import load_file
 

@@ -4,6 +4,8 @@
 # time, about 1 CPU-second each), restore a run's committed state into its run folder if
 # that folder holds none, then train, resuming from the latest checkpoint when there is one.
 # Usage (from the repository root): bash training/resume.sh RUN STATE [svcode train options]
+# OBJECTS=KIND (default mixed) trains on the v2 data with another phantom kind instead,
+# in runs/data-v2-KIND (the same seed, departures and frame count).
 set -euo pipefail
 run="$1" state="$2"
 shift 2
@@ -11,11 +13,14 @@ here="$(cd "$(dirname "$0")" && pwd)"
 # Threads that wait sleep instead of spinning: on a shared machine spinning cost a run up
 # to twice the CPU time per epoch.
 export OMP_WAIT_POLICY="${OMP_WAIT_POLICY:-PASSIVE}"
-svcode dataset --preset cm2-mini --frames 480 --out runs/data-v2 --seed 0 \
+objects="${OBJECTS:-mixed}"
+data=runs/data-v2
+[ "$objects" = mixed ] || data="runs/data-v2-$objects"
+svcode dataset --preset cm2-mini --frames 480 --out "$data" --seed 0 --objects "$objects" \
   --departures "$here/cm2-mini-v2/departures.json" --no-progress
 if [ ! -f "$run/checkpoints/latest.json" ] && [ -f "$state/checkpoints/latest.json" ]; then
   mkdir -p "$run" && cp -r "$state/." "$run/"
 fi
 resume=()
 [ -f "$run/checkpoints/latest.json" ] && resume=(--resume)
-svcode train --preset cm2-mini --data runs/data-v2 --out "$run" "$@" --no-progress "${resume[@]}"
+svcode train --preset cm2-mini --data "$data" --out "$run" "$@" --no-progress "${resume[@]}"

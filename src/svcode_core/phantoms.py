@@ -14,7 +14,9 @@ given, so a seed fixes the object. Kinds:
   fundus photograph: its vessel tree, extracted as a bright-on-dark map). Nothing is
   downloaded: scikit-image's fluorescence samples (``human_mitosis``, ``cells3d``, ``kidney``)
   are not bundled with the wheel and are not used;
-* ``mixed``: one of the above chosen at random, or a blend of two.
+* ``isolated-cells``: a few large cells alone in a dark field (textured ellipses);
+* ``mixed``: one of the first five chosen at random, or a blend of two;
+  ``mixed-isolated`` the same with ``isolated-cells`` among the choices.
 
 Spots and curvilinear structures are sums of pixel-integrated Gaussians (exact box
 integration via ``erf``), so sub-pixel emitters are anti-aliased. A structure of radius
@@ -45,6 +47,7 @@ __all__ = [
     "cells",
     "from_image",
     "held_out_image",
+    "isolated_cells",
     "make_object",
     "mixed",
     "neurons",
@@ -522,17 +525,84 @@ def skimage_crop(size: int, rng: np.random.Generator) -> np.ndarray:
     return _fluorescence_map(resized, rng)
 
 
-def mixed(size: int, rng: np.random.Generator) -> np.ndarray:
+def isolated_cells(
+    size: int,
+    rng: np.random.Generator,
+    count: Range = (1.0, 8.0),
+    radius: Range = (8.0, 60.0),
+) -> np.ndarray:
+    """A few large cells alone in a dark field: textured ellipses with soft edges.
+
+    Large bright objects with nothing around them are where the demixing is least
+    determined: their light reaches the neighbouring lenses' views one pitch away, and
+    with the outer views cut by the sensor edge a copy there can pass for an object of its
+    own. Dense content rarely shows this case.
+
+    Parameters
+    ----------
+    size : int
+        Side of the square grid.
+    rng : numpy.random.Generator
+        Source of randomness.
+    count : float or (float, float)
+        Number of cells, drawn log-uniformly and rounded.
+    radius : float or (float, float)
+        Semi-major axis in pixels at size 384 (log-uniform, scaled with ``size``); the
+        semi-minor axis is 60–100 % of it.
+
+    Returns
+    -------
+    numpy.ndarray
+        float32 ``(size, size)`` in ``[0, 1]``, maximum 1.
+
+    Examples
+    --------
+    >>> obj = isolated_cells(96, np.random.default_rng(0))
+    >>> obj.shape, float(obj.max()), bool(np.median(obj) < 1e-3)  # mostly dark
+    ((96, 96), 1.0, True)
+    """
+    _check_size(size)
+    n = int(round(_log_uniform(rng, _as_range(count, "count"))))
+    major = _log_uniform(rng, _as_range(radius, "radius"), n) * size / REFERENCE_SIZE
+    minor = major * rng.uniform(0.6, 1.0, n)
+    centres = rng.uniform(0, size, (n, 2))
+    angles = rng.uniform(0, np.pi, n)
+    levels = _log_uniform(rng, (0.3, 1.0), n)
+    rows, cols = np.mgrid[0:size, 0:size].astype(np.float64)
+    img = np.zeros((size, size))
+    for centre, a, b, angle, level in zip(centres, major, minor, angles, levels, strict=True):
+        dy, dx = rows - centre[0], cols - centre[1]
+        u = dx * np.cos(angle) + dy * np.sin(angle)
+        v = -dx * np.sin(angle) + dy * np.cos(angle)
+        depth = (1 - np.hypot(u / a, v / b)) * b  # about the distance inside the edge
+        body = special.expit(depth / rng.uniform(0.7, 3.0))
+        texture = 1 + 0.3 * _smooth_noise(rng, size, max(1.0, 0.1 * b))
+        img = np.maximum(img, level * body * texture)
+    return _to_unit(img)
+
+
+MIXED_KINDS = ("beads", "cells", "vessels", "neurons", "skimage")
+MIXED_WEIGHTS = (0.2, 0.2, 0.15, 0.15, 0.3)
+
+
+def mixed(
+    size: int,
+    rng: np.random.Generator,
+    kinds: tuple[str, ...] = MIXED_KINDS,
+    weights: tuple[float, ...] = MIXED_WEIGHTS,
+) -> np.ndarray:
     """One kind at random (70 %) or a blend of two different kinds (30 %), for diversity;
     30 % of the draws sit on a smooth in-focus background of 5–30 % of the peak.
+
+    ``kinds`` are drawn with probabilities ``weights``; the defaults are the ``mixed``
+    kind, and ``mixed-isolated`` adds ``isolated-cells``.
 
     Returns
     -------
     numpy.ndarray
         float32 ``(size, size)`` in ``[0, 1]``.
     """
-    names = ["beads", "cells", "vessels", "neurons", "skimage"]
-    chosen = rng.choice(names, size=2, replace=False, p=[0.2, 0.2, 0.15, 0.15, 0.3])
+    chosen = rng.choice(list(kinds), size=2, replace=False, p=list(weights))
     first = KINDS[str(chosen[0])](size, rng)
     if rng.random() < 0.7:
         out = first
@@ -551,7 +621,11 @@ KINDS: dict[str, Callable[..., np.ndarray]] = {
     "vessels": vessels,
     "neurons": neurons,
     "skimage": skimage_crop,
+    "isolated-cells": isolated_cells,
     "mixed": mixed,
+    "mixed-isolated": functools.partial(
+        mixed, kinds=(*MIXED_KINDS, "isolated-cells"), weights=(0.15, 0.15, 0.12, 0.12, 0.26, 0.2)
+    ),
 }
 
 
@@ -567,7 +641,7 @@ def make_object(
     ----------
     kind : str
         One of :data:`KINDS`: ``"beads"``, ``"cells"``, ``"vessels"``, ``"neurons"``,
-        ``"skimage"``, ``"mixed"``.
+        ``"skimage"``, ``"isolated-cells"``, ``"mixed"``, ``"mixed-isolated"``.
     size : int
         Side of the square grid.
     seed_or_rng : int, numpy.random.Generator or None

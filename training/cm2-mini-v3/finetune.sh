@@ -23,6 +23,10 @@
 #                     with the better centre catch up in the ring when the loss asks for it?
 #   context-ring4     8 more epochs of context-ring's (bundled) model, lr 2e-4, seed 8, ring
 #                     weight 4: does a heavier ring weight close more of its ring gap?
+#   isolated          4 more epochs of context-ring's (bundled) model, lr 2e-4, seed 9, ring
+#                     weight 2, on the v2 data made with the mixed-isolated phantoms (20 %
+#                     of the frames: a few large cells alone in a dark field): do the copies
+#                     of bright isolated objects one lens pitch away (ghosts) go?
 # The v2 model is ../cm2-mini-v2/run/best.safetensors, its ablations'
 # ../cm2-mini-v2/ablations/<name>/best.safetensors.
 # Usage (from the repository root): bash training/cm2-mini-v3/finetune.sh ARM
@@ -57,7 +61,11 @@ case "$arm" in
   context-ring4) extra=(--init "$here/context-ring/best.safetensors" --lens-context
                         --mse-weight 100 --epochs 8 --lr 2e-4 --warmup-steps 100 --seed 8
                         --edge-weight 4 --ring-weight 4);;
-  *) echo "finetune: context, mse, context-mse, mse-no-coordgate, mse-no-pe, mse-long, mse-long2, mse-long3, edge, ring2, ring4, ring2-long, context-ring or context-ring4" >&2
+  isolated) export OBJECTS=mixed-isolated
+            extra=(--init "$here/context-ring/best.safetensors" --lens-context
+                   --mse-weight 100 --epochs 4 --lr 2e-4 --warmup-steps 100 --seed 9
+                   --edge-weight 4 --ring-weight 2);;
+  *) echo "finetune: context, mse, context-mse, mse-no-coordgate, mse-no-pe, mse-long, mse-long2, mse-long3, edge, ring2, ring4, ring2-long, context-ring, context-ring4 or isolated" >&2
      exit 2;;
 esac
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"

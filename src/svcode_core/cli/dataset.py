@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..phantoms import KINDS
 from ..physics.departures import NAMED_SETS, load_departures
 from ..training import DataRecipe, generate_dataset
 from . import add_system_arguments, chosen_system
@@ -16,9 +17,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "dataset",
         help="simulate training data for a system",
         description=(
-            "Simulate N frames of mixed objects (cells, vessels, neurons, beads, scikit-image "
-            "crops) through the system and store the noiseless sub-views, the demixing "
-            "targets and the objects as .npy arrays with system.json and manifest.json. "
+            "Simulate N frames of phantoms (by default mixed: cells, vessels, neurons, beads, "
+            "scikit-image crops) through the system and store the noiseless sub-views, the "
+            "demixing targets and the objects as .npy arrays with system.json and manifest.json. "
             "Noise is added by the trainer on every use. Rerun with the same arguments to "
             "finish an interrupted generation."
         ),
@@ -27,6 +28,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--frames", type=int, required=True, help="number of frames N")
     parser.add_argument("--out", type=Path, required=True, help="dataset folder")
     parser.add_argument("--seed", type=int, default=0, help="seed of objects and split")
+    parser.add_argument("--objects", default="mixed", choices=KINDS,
+                        help="phantom kind of every frame (default: mixed)")
     parser.add_argument("--val-fraction", type=float, default=0.1,
                         help="fraction of frames held out for validation (default: 0.1)")
     parser.add_argument("--departures", metavar="{" + ",".join(NAMED_SETS) + ",FILE}",
@@ -45,7 +48,8 @@ def run(args: argparse.Namespace) -> int:
     system = chosen_system(args)
     departures = None if args.departures is None else load_departures(args.departures, system)
     recipe = DataRecipe(frames=args.frames, seed=args.seed, val_fraction=args.val_fraction,
-                        departures=departures, instrument_frames=args.instrument_frames)
+                        object_kind=args.objects, departures=departures,
+                        instrument_frames=args.instrument_frames)
     data = generate_dataset(args.out, system, recipe, progress=not args.no_progress)
     seconds = data.manifest["seconds"]
     print(f"{data}: simulation took {seconds:.1f} s in all "

@@ -38,7 +38,7 @@ from tqdm.auto import tqdm
 
 from ..config import N_LENSES, ConfigError, SystemConfig, check_int, check_number
 from ..io import write_json_atomic
-from ..phantoms import make_object
+from ..phantoms import KINDS, make_object
 from ..physics.departures import Departures
 from ..physics.noise import SensorModel
 from ..physics.simulate import Simulator
@@ -99,6 +99,9 @@ class DataRecipe:
         check_int("seed", self.seed, 0)
         if not 0 < check_number("val_fraction", self.val_fraction) < 1:
             raise ConfigError(f"val_fraction: must lie in (0, 1), got {self.val_fraction!r}")
+        if self.object_kind not in KINDS:
+            raise ConfigError(f"object_kind: must be one of {', '.join(KINDS)}, "
+                              f"got {self.object_kind!r}")
         low, high = self.brightness
         if not 0 < low <= high <= 1:
             raise ConfigError(f"brightness: must satisfy 0 < low <= high <= 1, "
