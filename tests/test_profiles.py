@@ -65,21 +65,7 @@ def bundled():
     return system, Simulator(system), Reconstructor.pretrained(system), admm
 
 
-#: samples on which the bundled model is still off by more than that (measured values)
-KNOWN_BANDS = {
-    "beads": "rows 64-79 at 0.64 of the truth",
-}
-
-
-@pytest.mark.parametrize(
-    "kind",
-    [
-        pytest.param(kind, marks=pytest.mark.xfail(strict=True, reason=KNOWN_BANDS[kind]
-                                                   + "; see the model card"))
-        if kind in KNOWN_BANDS else kind
-        for kind in SAMPLE_KINDS
-    ],
-)
+@pytest.mark.parametrize("kind", SAMPLE_KINDS)
 def test_row_and_column_profiles_follow_the_truth(kind, bundled):
     system, simulator, reconstructor, admm = bundled
     truth = make_object(kind, system.sub_view_size, SAMPLE_SEED)

@@ -3,9 +3,9 @@
 # result that quotes the bundled model: its rows of the held-out benchmark
 # (bench/results/regimes.*, the other methods' rows kept), the network's stability report,
 # the README screenshots, and print the demo's PSNR and the profile and seam tests' outcome
-# (their expected failures name measured bands: update KNOWN_BANDS in
-# tests/test_profiles.py and the seam reason in tests/test_tile_plan.py by hand, with the
-# model card, the README's tables and docs/regimes.md). About 15 minutes on two cores;
+# (the seam test's expected failure names a measured agreement: update its reason in
+# tests/test_tile_plan.py by hand, with the model card, the README's tables and
+# docs/regimes.md; a profile test that fails means the model does not ship). About 15 minutes on two cores;
 # pause any training first.
 # Usage (from the repository root): bash training/bundle.sh WEIGHTS
 set -euo pipefail

@@ -27,6 +27,8 @@
 #                     weight 2, on the v2 data made with the mixed-isolated phantoms (20 %
 #                     of the frames: a few large cells alone in a dark field): do the copies
 #                     of bright isolated objects one lens pitch away (ghosts) go?
+#   ring4-isolated    4 more epochs of context-ring4's (bundled) model on the mixed-isolated
+#                     data, lr 2e-4, seed 10, ring weight 4: both gains in one model?
 # The v2 model is ../cm2-mini-v2/run/best.safetensors, its ablations'
 # ../cm2-mini-v2/ablations/<name>/best.safetensors.
 # Usage (from the repository root): bash training/cm2-mini-v3/finetune.sh ARM
@@ -65,7 +67,11 @@ case "$arm" in
             extra=(--init "$here/context-ring/best.safetensors" --lens-context
                    --mse-weight 100 --epochs 4 --lr 2e-4 --warmup-steps 100 --seed 9
                    --edge-weight 4 --ring-weight 2);;
-  *) echo "finetune: context, mse, context-mse, mse-no-coordgate, mse-no-pe, mse-long, mse-long2, mse-long3, edge, ring2, ring4, ring2-long, context-ring, context-ring4 or isolated" >&2
+  ring4-isolated) export OBJECTS=mixed-isolated
+                  extra=(--init "$here/context-ring4/best.safetensors" --lens-context
+                         --mse-weight 100 --epochs 4 --lr 2e-4 --warmup-steps 100 --seed 10
+                         --edge-weight 4 --ring-weight 4);;
+  *) echo "finetune: context, mse, context-mse, mse-no-coordgate, mse-no-pe, mse-long, mse-long2, mse-long3, edge, ring2, ring4, ring2-long, context-ring, context-ring4, isolated or ring4-isolated" >&2
      exit 2;;
 esac
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
