@@ -29,6 +29,10 @@
 #                     of bright isolated objects one lens pitch away (ghosts) go?
 #   ring4-isolated    4 more epochs of context-ring4's (bundled) model on the mixed-isolated
 #                     data, lr 2e-4, seed 10, ring weight 4: both gains in one model?
+#   context-ring-no-coordgate, context-ring-no-pe, context-ring4-no-coordgate,
+#   context-ring4-no-pe
+#                     the two fine-tunings above for the ablations of the lens-context model
+#                     (context-scratch.sh no-coordgate|no-pe), so that they have its budget
 # The v2 model is ../cm2-mini-v2/run/best.safetensors, its ablations'
 # ../cm2-mini-v2/ablations/<name>/best.safetensors.
 # Usage (from the repository root): bash training/cm2-mini-v3/finetune.sh ARM
@@ -40,6 +44,11 @@ base="$v2/run/best.safetensors"
 # mse-long3 and edge differ only in the edge weight
 long3=(--init "$here/mse-long2/best.safetensors" --mse-weight 100 --epochs 8
        --lr 2e-4 --warmup-steps 100 --seed 4)
+# the two fine-tunings of the bundled lens-context model (and of its ablations)
+ring2=(--lens-context --mse-weight 100 --epochs 6 --lr 3e-4 --warmup-steps 100 --seed 7
+       --edge-weight 4 --ring-weight 2)
+ring4=(--lens-context --mse-weight 100 --epochs 8 --lr 2e-4 --warmup-steps 100 --seed 8
+       --edge-weight 4 --ring-weight 4)
 case "$arm" in
   context) extra=(--init "$base" --lens-context --epochs 4);;
   mse) extra=(--init "$base" --mse-weight 100 --epochs 2);;
@@ -57,12 +66,12 @@ case "$arm" in
                       --ring-weight "${arm#ring}");;
   ring2-long) extra=(--init "$here/ring2/best.safetensors" --mse-weight 100 --epochs 8
                      --lr 2e-4 --warmup-steps 100 --seed 6 --edge-weight 4 --ring-weight 2);;
-  context-ring) extra=(--init "$here/context-scratch/best.safetensors" --lens-context
-                       --mse-weight 100 --epochs 6 --lr 3e-4 --warmup-steps 100 --seed 7
-                       --edge-weight 4 --ring-weight 2);;
-  context-ring4) extra=(--init "$here/context-ring/best.safetensors" --lens-context
-                        --mse-weight 100 --epochs 8 --lr 2e-4 --warmup-steps 100 --seed 8
-                        --edge-weight 4 --ring-weight 4);;
+  context-ring) extra=(--init "$here/context-scratch/best.safetensors" "${ring2[@]}");;
+  context-ring-no-coordgate|context-ring-no-pe)
+    extra=(--init "$here/context-scratch-${arm#context-ring-}/best.safetensors" "${ring2[@]}");;
+  context-ring4) extra=(--init "$here/context-ring/best.safetensors" "${ring4[@]}");;
+  context-ring4-no-coordgate|context-ring4-no-pe)
+    extra=(--init "$here/context-ring-${arm#context-ring4-}/best.safetensors" "${ring4[@]}");;
   isolated) export OBJECTS=mixed-isolated
             extra=(--init "$here/context-ring/best.safetensors" --lens-context
                    --mse-weight 100 --epochs 4 --lr 2e-4 --warmup-steps 100 --seed 9
@@ -71,7 +80,7 @@ case "$arm" in
                   extra=(--init "$here/context-ring4/best.safetensors" --lens-context
                          --mse-weight 100 --epochs 4 --lr 2e-4 --warmup-steps 100 --seed 10
                          --edge-weight 4 --ring-weight 4);;
-  *) echo "finetune: context, mse, context-mse, mse-no-coordgate, mse-no-pe, mse-long, mse-long2, mse-long3, edge, ring2, ring4, ring2-long, context-ring, context-ring4, isolated or ring4-isolated" >&2
+  *) echo "finetune: context, mse, context-mse, mse-no-coordgate, mse-no-pe, mse-long, mse-long2, mse-long3, edge, ring2, ring4, ring2-long, context-ring, context-ring4, isolated, ring4-isolated or context-ring[4]-no-coordgate|no-pe" >&2
      exit 2;;
 esac
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
