@@ -16,8 +16,10 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from svcode_core.config import SystemConfig
@@ -35,7 +37,12 @@ DISCS = ((40, 1.0), (6, 1.0), (40, 0.3))  # (radius, level)
 ADMM_CENTRES = CENTRES[:2] + CENTRES[3:4]
 
 
-def probe_rows(label: str, reconstruct, simulator: Simulator, cases) -> list[dict]:
+def probe_rows(
+    label: str,
+    reconstruct: Callable[[np.ndarray], np.ndarray],
+    simulator: Simulator,
+    cases: list[tuple[tuple[int, int], int, float]],
+) -> list[dict]:
     """One row per (centre, radius, level) case."""
     rows = []
     for centre, radius, level in cases:
