@@ -14,22 +14,16 @@ model and 2 minutes for LSV-ADMM on 2 cores; ``--no-admm`` skips it).
 from __future__ import annotations
 
 import argparse
-import json
 import time
-from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
-import torch
+from probes import Reconstruct, admm_method, svcode_methods, write_report
 
 from svcode_core.config import SystemConfig
-from svcode_core.evaluation.bench import model_label
 from svcode_core.evaluation.ghosts import DIRECTIONS, ghost_probe
-from svcode_core.methods.build import build_reconstructor
 from svcode_core.physics.cm2 import CM2Operator
 from svcode_core.physics.psf_io import model_psfs
 from svcode_core.physics.simulate import Simulator
-from svcode_core.pretrained import require_bundled_weights
 
 RESULTS = Path(__file__).parent / "results"
 CENTRES = ((192, 192), (220, 300), (100, 192), (192, 80), (280, 280))
@@ -39,7 +33,7 @@ ADMM_CENTRES = CENTRES[:2] + CENTRES[3:4]
 
 def probe_rows(
     label: str,
-    reconstruct: Callable[[np.ndarray], np.ndarray],
+    reconstruct: Reconstruct,
     simulator: Simulator,
     cases: list[tuple[tuple[int, int], int, float]],
 ) -> list[dict]:
@@ -89,21 +83,12 @@ def main() -> None:
     simulator = Simulator(system, CM2Operator.from_psfs(system, model_psfs(system)))
     cases = [(c, r, level) for c in CENTRES for r, level in DISCS]
     rows = []
-    for weights in [require_bundled_weights(system), *args.weights]:
-        reconstructor = build_reconstructor("svcode", system, weights)
-        label = f"{model_label(weights)}: {weights.name}"
-        rows += probe_rows(label, lambda raw, r=reconstructor: r.reconstruct(raw).reconstruction,
-                           simulator, cases)
+    for label, reconstruct in svcode_methods(system, args.weights):
+        rows += probe_rows(label, reconstruct, simulator, cases)
     if not args.no_admm:
-        admm = build_reconstructor("admm", system, rank=3, iterations=50, tolerance=0.0)
-        rows += probe_rows("LSV-ADMM K=3, 50 it",
-                           lambda raw: admm.reconstruct(raw).reconstruction, simulator,
-                           [(c, 40, 1.0) for c in ADMM_CENTRES])
-    report = {"threads": torch.get_num_threads(), "rows": rows}
-    args.out.with_suffix(".json").write_text(json.dumps(report, indent=1))
-    write_markdown(report, args.out.with_suffix(".md"))
-    print(f"wrote {args.out.with_suffix('.md')}")
-
+        label, reconstruct = admm_method(system, iterations=50)
+        rows += probe_rows(label, reconstruct, simulator, [(c, 40, 1.0) for c in ADMM_CENTRES])
+    write_report(rows, args.out, write_markdown)
 
 if __name__ == "__main__":
     main()

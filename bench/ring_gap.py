@@ -20,32 +20,22 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-import torch
+from probes import Reconstruct, admm_method, svcode_methods, write_report
 
 from svcode_core.config import SystemConfig
-from svcode_core.evaluation.bench import (
-    ADMM_RANK,
-    REGIMES,
-    SCENES,
-    model_label,
-    regime_simulator,
-    scene_object,
-)
+from svcode_core.evaluation.bench import REGIMES, SCENES, regime_simulator, scene_object
 from svcode_core.evaluation.field_position import (
     half_field_shifts,
     moved_scene,
     same_content_zones,
 )
 from svcode_core.evaluation.metrics import image_quality
-from svcode_core.methods.build import build_reconstructor
 from svcode_core.physics.cm2 import CM2Operator
 from svcode_core.physics.psf_io import model_psfs
 from svcode_core.physics.simulate import Simulator
-from svcode_core.pretrained import require_bundled_weights
 from svcode_core.training.loss import EDGE_STRIP
 
 RESULTS = Path(__file__).parent / "results"
@@ -60,7 +50,6 @@ def edge_columns(size: int) -> np.ndarray:
     strips = np.zeros((size, size), dtype=bool)
     strips[:, :EDGE_STRIP] = strips[:, size - EDGE_STRIP:] = True
     return strips
-Reconstruct = Callable[[np.ndarray], np.ndarray]
 
 
 def scene_row(reconstruct: Reconstruct, simulator: Simulator, index: int,
@@ -168,34 +157,25 @@ def main() -> None:
     system = SystemConfig.preset("cm2-mini")
     psfs = model_psfs(system)
     nominal = Simulator(system, CM2Operator.from_psfs(system, psfs))
-    rows = []
-    for weights in [require_bundled_weights(system), *args.weights]:
-        knobs, knob = {"pool_window": args.pool_window}, ""
-        if args.tile is not None:
-            knobs |= {"tile_size": args.tile, "stride": args.tile // 2}
-            knob += f", tile {args.tile}, stride {args.tile // 2}"
-        if args.pool_window is not None:
-            knob += f", pool {args.pool_window}"
-        reconstructor = build_reconstructor("svcode", system, weights, **knobs)
-        rows += method_rows(f"{model_label(weights)}: {weights.name}{knob}",
-                            lambda raw, r=reconstructor: r.reconstruct(raw).reconstruction,
-                            system, nominal, args.regimes)
+    options, knob = {"pool_window": args.pool_window}, ""
+    if args.tile is not None:
+        options |= {"tile_size": args.tile, "stride": args.tile // 2}
+        knob += f", tile {args.tile}, stride {args.tile // 2}"
+    if args.pool_window is not None:
+        knob += f", pool {args.pool_window}"
+    methods = svcode_methods(system, args.weights, knob, **options)
     if not args.no_admm:
-        admm = build_reconstructor("admm", system, rank=ADMM_RANK,
-                                   iterations=args.admm_iterations, tolerance=0.0)
-        rows += method_rows(f"LSV-ADMM K={ADMM_RANK}, {args.admm_iterations} it",
-                            lambda raw: admm.reconstruct(raw).reconstruction,
-                            system, nominal, args.regimes)
+        methods.append(admm_method(system, args.admm_iterations))
+    rows = []
+    for label, reconstruct in methods:
+        rows += method_rows(label, reconstruct, system, nominal, args.regimes)
     earlier = args.out.with_suffix(".json")
     if args.merge and earlier.exists():
         done = {(row["regime"], row["method"]) for row in rows}
         rows = [row for row in json.loads(earlier.read_text())["rows"]
                 if (row["regime"], row["method"]) not in done] + rows
     rows.sort(key=lambda row: list(REGIMES).index(row["regime"]))
-    report = {"threads": torch.get_num_threads(), "rows": rows}
-    args.out.with_suffix(".json").write_text(json.dumps(report, indent=1))
-    write_markdown(report, args.out.with_suffix(".md"))
-    print(f"wrote {args.out.with_suffix('.md')}")
+    write_report(rows, args.out, write_markdown)
 
 
 if __name__ == "__main__":

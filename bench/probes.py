@@ -1,0 +1,51 @@
+"""What the probe scripts (``ghosts.py``, ``ring_gap.py``) share: the reconstructors they
+compare, with their labels, and how they write a report."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from svcode_core.config import SystemConfig
+from svcode_core.evaluation.bench import ADMM_RANK, model_label
+from svcode_core.methods.build import build_reconstructor
+from svcode_core.pretrained import require_bundled_weights
+
+#: raw frame ``(H, W)`` to the ``(S, S)`` object estimate
+Reconstruct = Callable[[np.ndarray], np.ndarray]
+
+
+def svcode_methods(system: SystemConfig, weights: list[Path], knob: str = "",
+                   **options: Any) -> list[tuple[str, Reconstruct]]:
+    """The bundled SV-CoDe model, then every file of ``weights``, built with ``options``.
+
+    Labels are the model's family and file name, then ``knob`` (what ``options`` set).
+    """
+    methods = []
+    for path in [require_bundled_weights(system), *weights]:
+        reconstructor = build_reconstructor("svcode", system, path, **options)
+        methods.append((f"{model_label(path)}: {path.name}{knob}",
+                        lambda raw, r=reconstructor: r.reconstruct(raw).reconstruction))
+    return methods
+
+
+def admm_method(system: SystemConfig, iterations: int) -> tuple[str, Reconstruct]:
+    """LSV-ADMM at the benchmark's ``K``, a fixed number of iterations."""
+    admm = build_reconstructor("admm", system, rank=ADMM_RANK, iterations=iterations,
+                               tolerance=0.0)
+    return (f"LSV-ADMM K={ADMM_RANK}, {iterations} it",
+            lambda raw: admm.reconstruct(raw).reconstruction)
+
+
+def write_report(rows: list[dict], out: Path,
+                 write_markdown: Callable[[dict, Path], None]) -> None:
+    """``out``.json (the rows and the thread count) and ``out``.md from it."""
+    report = {"threads": torch.get_num_threads(), "rows": rows}
+    out.with_suffix(".json").write_text(json.dumps(report, indent=1))
+    write_markdown(report, out.with_suffix(".md"))
+    print(f"wrote {out.with_suffix('.md')}")
