@@ -24,12 +24,15 @@ def svcode_methods(system: SystemConfig, weights: list[Path], knob: str = "",
                    **options: Any) -> list[tuple[str, Reconstruct]]:
     """The bundled SV-CoDe model, then every file of ``weights``, built with ``options``.
 
-    Labels are the model's family and file name, then ``knob`` (what ``options`` set).
+    Labels are the model's family and file (the bundled one by its name, the others by
+    their path as given), then ``knob`` (what ``options`` set).
     """
     methods = []
-    for path in [require_bundled_weights(system), *weights]:
+    bundled = require_bundled_weights(system)
+    for path in [bundled, *weights]:
         reconstructor = build_reconstructor("svcode", system, path, **options)
-        methods.append((f"{model_label(path)}: {path.name}{knob}",
+        name = path.name if path == bundled else str(path)
+        methods.append((f"{model_label(path)}: {name}{knob}",
                         lambda raw, r=reconstructor: r.reconstruct(raw).reconstruction))
     return methods
 
