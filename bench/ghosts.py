@@ -90,5 +90,6 @@ def main() -> None:
         rows += probe_rows(label, reconstruct, simulator, [(c, 40, 1.0) for c in ADMM_CENTRES])
     write_report(rows, args.out, write_markdown)
 
+
 if __name__ == "__main__":
     main()

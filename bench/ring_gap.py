@@ -61,13 +61,14 @@ def scene_row(reconstruct: Reconstruct, simulator: Simulator, index: int,
         raw = simulator.simulate(scene, seed=100 + index).measurement
         return np.asarray(reconstruct(raw), dtype=np.float64)
 
+    shifts = half_field_shifts(len(truth))
     estimate = image(truth)
-    moved = {shift: image(moved_scene(truth, shift)) for shift in half_field_shifts(len(truth))}
+    moved = {shift: image(moved_scene(truth, shift)) for shift in shifts}
     quality = image_quality(truth, estimate, data_range=1.0)
     same = same_content_zones(truth, estimate, moved)
     by_move = {f"same_gap_{name}": same_content_zones(truth, estimate, {shift: moved[shift]}).gap
-               for name, shift in zip(MOVES, moved, strict=True)}
-    columns = {half_field_shifts(len(truth))[1]: moved[half_field_shifts(len(truth))[1]]}
+               for name, shift in zip(MOVES, shifts, strict=True)}
+    columns = {shifts[1]: moved[shifts[1]]}
     strips = edge_columns(len(truth))
     by_move["same_gap_column_strips"] = same_content_zones(truth, estimate, columns,
                                                            ring=strips).gap
@@ -79,15 +80,13 @@ def scene_row(reconstruct: Reconstruct, simulator: Simulator, index: int,
             "seconds": time.perf_counter() - begin}
 
 
-def method_rows(label: str, reconstruct: Reconstruct, system: SystemConfig,
-                nominal: Simulator, regimes: list[str]) -> list[dict]:
-    """One row per regime: scene means and the per-scene values."""
+def regime_rows(regime: str, simulator: Simulator, truths: dict[str, np.ndarray],
+                methods: list[tuple[str, Reconstruct]]) -> list[dict]:
+    """One row per method in one regime: scene means and the per-scene values."""
     rows = []
-    for regime in regimes:
-        simulator = regime_simulator(system, regime, nominal)
+    for label, reconstruct in methods:
         per_scene = {}
-        for index, (name, kind, params) in enumerate(SCENES):
-            truth = scene_object(kind, system.sub_view_size, index, params)
+        for index, (name, truth) in enumerate(truths.items()):
             per_scene[name] = scene_row(reconstruct, simulator, index, truth)
             print(f"[{regime}] {label}, {name}: same-content gap "
                   f"{per_scene[name]['same_gap']:.2f} dB", flush=True)
@@ -166,9 +165,12 @@ def main() -> None:
     methods = svcode_methods(system, args.weights, knob, **options)
     if not args.no_admm:
         methods.append(admm_method(system, args.admm_iterations))
+    truths = {name: scene_object(kind, system.sub_view_size, index, params)
+              for index, (name, kind, params) in enumerate(SCENES)}
     rows = []
-    for label, reconstruct in methods:
-        rows += method_rows(label, reconstruct, system, nominal, args.regimes)
+    for regime in args.regimes:  # each regime's instrument is built once for every method
+        simulator = regime_simulator(system, regime, nominal)
+        rows += regime_rows(regime, simulator, truths, methods)
     earlier = args.out.with_suffix(".json")
     if args.merge and earlier.exists():
         done = {(row["regime"], row["method"]) for row in rows}
