@@ -4,6 +4,7 @@ import torch
 
 from svcode_core.physics.geometry import (
     CONTEXT_SHIFTS,
+    context_shifts,
     context_views,
     extract_sub_views,
     lens_pitch,
@@ -52,26 +53,53 @@ def test_wrong_frame_shape_raises(tiny_system):
         pad_sensor_frame(torch.zeros(10, 10), tiny_system)
 
 
-def test_context_views_are_the_sub_views_moved_by_a_pitch(mini_system):
+@pytest.mark.parametrize("reach, shifts", [
+    (1, CONTEXT_SHIFTS),
+    (2, CONTEXT_SHIFTS + ((0, -2), (0, 2))),
+])
+def test_context_views_are_the_sub_views_moved_by_whole_pitches(mini_system, reach, shifts):
     """Against numpy slicing of one large zero-padded frame, pixel by pixel."""
     frame = torch.rand(mini_system.padded_shape, generator=torch.Generator().manual_seed(0))
     pitch = lens_pitch(mini_system)
     assert pitch == (144, 144)
+    assert context_shifts(reach) == shifts
     big = 1000  # wider than every crop can reach
     padded = np.pad(frame.numpy(), big)
     origin, size = (40, 250), 96
-    context = context_views(frame, mini_system, origin, size)
-    assert context.shape == (81, size, size)
+    context = context_views(frame, mini_system, origin, size, reach)
+    k = len(shifts)
+    assert context.shape == (9 * k, size, size)
     for lens, (r0, c0) in enumerate(sub_view_origins(mini_system)):
-        for k, (dr, dc) in enumerate(CONTEXT_SHIFTS):
+        for j, (dr, dc) in enumerate(shifts):
             r = big + r0 + origin[0] + dr * pitch[0]
             c = big + c0 + origin[1] + dc * pitch[1]
-            np.testing.assert_array_equal(context[9 * lens + k].numpy(),
+            np.testing.assert_array_equal(context[k * lens + j].numpy(),
                                           padded[r : r + size, c : c + size])
-    whole = context_views(frame, mini_system)  # channel 9ℓ is lens ℓ's sub-view
-    assert torch.equal(whole[::9], extract_sub_views(frame, mini_system))
+    whole = context_views(frame, mini_system, reach=reach)  # channel kℓ: lens ℓ's sub-view
+    assert torch.equal(whole[::k], extract_sub_views(frame, mini_system))
     # the right lens column moved one pitch right leaves the padded frame partly: zeros
-    assert (whole[9 * 2 + 5, :, -144:] == 0).all()
+    assert (whole[k * 2 + 5, :, -144:] == 0).all()
+
+
+def test_context_reach_two_holds_the_reading_the_left_strip_needs(mini_system):
+    """The left edge strip's one reading that a single lens column sees alone (sub-view
+    column u seen at padded column u + 4 pitches, by the right lens column only) is in no
+    crop at reach 1, and at reach 2 in the right lens's crop moved two pitches right."""
+    frame = torch.zeros(mini_system.padded_shape)
+    row, u = 100, 5
+    r0 = sub_view_origins(mini_system)[4][0]  # the middle lens row
+    column = u + 4 * 144
+    assert mini_system.sensor_window[1].start <= column < mini_system.sensor_window[1].stop
+    frame[r0 + row, column] = 1.0
+    assert context_views(frame, mini_system)[:, row, u].sum() == 0
+    far = context_views(frame, mini_system, reach=2)[:, row, u]
+    assert far.nonzero().flatten().tolist() == [11 * 5 + 10]  # lens 5, shift (0, 2)
+
+
+@pytest.mark.parametrize("reach", [0, -1, 1.5, True])
+def test_context_shifts_refuse_a_reach_below_one_or_not_an_integer(reach):
+    with pytest.raises(ValueError, match="reach must be an integer >= 1"):
+        context_shifts(reach)
 
 
 def test_sensor_coverage_is_the_sensor_window_seen_from_each_sub_view(mini_system):

@@ -230,3 +230,25 @@ def test_a_lens_context_model_gets_the_crops_a_pitch_away(tiny_system):
     # the new inputs start with zero weights: the same reconstruction as the plain model
     expected = Reconstructor(plain, tiny_system)(frame).reconstruction
     np.testing.assert_allclose(wide(frame).reconstruction, expected, rtol=1e-5, atol=1e-6)
+
+
+def test_a_longer_lens_context_reach_starts_where_the_shorter_one_was(tiny_system):
+    """Widened from reach 1 to 2, a model takes the 99 crops of reach 2 and, its new inputs
+    at zero weight, reconstructs as before; a reach it already has is refused."""
+    from svcode_core.network import ModelConfig, SVCoDe, with_lens_context
+    from svcode_core.physics.geometry import context_views
+
+    torch.manual_seed(0)
+    near = with_lens_context(SVCoDe(ModelConfig.mini()))
+    torch.nn.init.normal_(near.demix.intro.weight, std=0.1)  # every reach-1 crop weighs
+    far = with_lens_context(near, reach=2)
+    assert far.model_config.context_reach == 2 and far.demix.views_per_lens == 11
+    frame = np.random.default_rng(1).random(tiny_system.sensor_shape, dtype=np.float32)
+    padded = pad_sensor_frame(torch.from_numpy(frame), tiny_system)
+    wide = Reconstructor(far, tiny_system)
+    np.testing.assert_array_equal(wide.prepare(frame),
+                                  context_views(padded, tiny_system, reach=2).numpy())
+    expected = Reconstructor(near, tiny_system)(frame).reconstruction
+    np.testing.assert_allclose(wide(frame).reconstruction, expected, rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="already has lens context of reach 2"):
+        with_lens_context(far, reach=2)

@@ -89,6 +89,12 @@ def test_train_from_initial_weights(tiny_system, tiny_model_config, tmp_path, ca
     assert main([*args[:4], str(tmp_path / "widened"), *args[5:], "--lens-context"]) == 0
     widened, _ = load_model(tmp_path / "widened" / "best.safetensors", tiny_system)
     assert widened.model_config == config.replace(lens_context=True)
+    # and one that lengthens its reach (from that file, whose context crops keep their weights)
+    farther = [*args[:4], str(tmp_path / "farther"), *args[5:7], "--init",
+               str(tmp_path / "widened" / "best.safetensors"), *args[9:], "--lens-context", "2"]
+    assert main(farther) == 0
+    far, _ = load_model(tmp_path / "farther" / "best.safetensors", tiny_system)
+    assert far.model_config == config.replace(lens_context=True, context_reach=2)
     assert main([*args, "--method", "fouriernet", "--lens-context"]) == 2
     assert main([*args, "--ablation", "no-pe"]) == 2
     assert "leave out --model-config and --ablation" in capsys.readouterr().err

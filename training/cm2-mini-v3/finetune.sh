@@ -29,6 +29,11 @@
 #                     of bright isolated objects one lens pitch away (ghosts) go?
 #   ring4-isolated    4 more epochs of context-ring4's (bundled) model on the mixed-isolated
 #                     data, lr 2e-4, seed 10, ring weight 4: both gains in one model?
+#   reach2            6 more epochs of context-ring4's (bundled) model with the lens context
+#                     reaching two pitches left and right (--lens-context 2; the new crops
+#                     start at zero weight), lr 2e-4, seed 11, edge and ring weights 4: does
+#                     the edge strips' one clean reading, two pitches beyond the old reach,
+#                     win them back?
 #   context-ring-no-coordgate, context-ring-no-pe, context-ring4-no-coordgate,
 #   context-ring4-no-pe
 #                     the two fine-tunings above for the ablations of the lens-context model
@@ -80,7 +85,9 @@ case "$arm" in
                   extra=(--init "$here/context-ring4/best.safetensors" --lens-context
                          --mse-weight 100 --epochs 4 --lr 2e-4 --warmup-steps 100 --seed 10
                          --edge-weight 4 --ring-weight 4);;
-  *) echo "finetune: context, mse, context-mse, mse-no-coordgate, mse-no-pe, mse-long, mse-long2, mse-long3, edge, ring2, ring4, ring2-long, context-ring, context-ring4, isolated, ring4-isolated or context-ring[4]-no-coordgate|no-pe" >&2
+  reach2) extra=(--init "$here/context-ring4/best.safetensors" "${ring4[@]}" --epochs 6
+                  --seed 11 --lens-context 2);;
+  *) echo "finetune: context, mse, context-mse, mse-no-coordgate, mse-no-pe, mse-long, mse-long2, mse-long3, edge, ring2, ring4, ring2-long, context-ring, context-ring4, isolated, ring4-isolated, reach2 or context-ring[4]-no-coordgate|no-pe" >&2
      exit 2;;
 esac
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"

@@ -54,10 +54,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--init", metavar="WEIGHTS",
                         help="start from the weights of a model file, or 'pretrained' for the "
                         "bundled model (fine-tuning); the network configuration is the file's")
-    parser.add_argument("--lens-context", action="store_true",
+    parser.add_argument("--lens-context", type=int, nargs="?", const=1, default=0,
+                        metavar="REACH",
                         help="SV-CoDe: the demixing stage also sees each lens's crop moved by "
-                        "one lens pitch towards its neighbours (for the field's edge strips); "
-                        "with --init, the file's model gains these inputs with zero weights")
+                        "one lens pitch towards its neighbours and, with REACH 2, by two "
+                        "pitches left and right (for the field's edge strips; default REACH "
+                        "1); with --init, the file's model gains the inputs it lacks with "
+                        "zero weights")
     parser.add_argument("--ablation", default="none", choices=sorted(ABLATIONS),
                         help="switch off the coordinate gate or the positional encoding")
     parser.add_argument("--epochs", type=int, default=defaults.epochs)

@@ -268,7 +268,8 @@ def model_label(weights: Path) -> str:
     config = read_model_metadata(weights)["model_config"]
     notes = [f"no {name}" for name, on in (("CoordGate", config.coord_gate),
                                            ("PE", config.positional_encoding)) if not on]
-    notes += ["lens context"] if config.lens_context else []
+    reach = f", reach {config.context_reach}" if config.context_reach > 1 else ""
+    notes += [f"lens context{reach}"] if config.lens_context else []
     return "SV-CoDe" + (f" ({', '.join(notes)})" if notes else "")
 
 

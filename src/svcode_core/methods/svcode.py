@@ -23,6 +23,7 @@ Devices and precision
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import threading
 import time
@@ -230,8 +231,9 @@ class Reconstructor(BaseReconstructor):
         self.skip_empty = skip_empty
         self.skip_threshold = system.noise.dark_offset + skip_factor * noise_floor(system.noise)
         self.model = model.to(self.device).eval()
-        lens_context = getattr(getattr(model, "model_config", None), "lens_context", False)
-        self._crop_views = context_views if lens_context else extract_sub_views
+        config = getattr(model, "model_config", None)
+        self._crop_views = (functools.partial(context_views, reach=config.context_reach)
+                            if getattr(config, "lens_context", False) else extract_sub_views)
         if pool_window is not None:
             if not hasattr(self.model, "set_pool_window"):
                 raise ValueError(f"pool_window: {type(model).__name__} has no channel "
@@ -277,7 +279,7 @@ class Reconstructor(BaseReconstructor):
     # ------------------------------------------------------------------ input
     def prepare(self, frame: np.ndarray, index: int = 0) -> np.ndarray:
         """One raw frame → its nine sub-views ``(9, S, S)`` float32 (checked, clipped at 0);
-        ``(81, S, S)`` with each lens's context crops for a model with
+        ``(9 k, S, S)`` with each lens's ``k`` context crops for a model with
         :attr:`~svcode_core.network.ModelConfig.lens_context`."""
         values = finite_frame(frame, index)
         values = np.maximum(values, 0.0)

@@ -231,7 +231,7 @@ class TiledOutput:
 
 def _check_views(views: np.ndarray, grid: TileGrid) -> None:
     """``(9 · k, S, S)``: the nine sub-views (``k = 1``) or, lens-major, each with its
-    context crops (``k = 9``, :func:`~svcode_core.physics.geometry.context_views`)."""
+    context crops (``k = 9`` or more, :func:`~svcode_core.physics.geometry.context_views`)."""
     shape = getattr(views, "shape", type(views).__name__)
     if (not isinstance(views, np.ndarray) or views.ndim != 3 or views.shape[0] % N_LENSES
             or not views.shape[0] or views.shape[1:] != (grid.size, grid.size)):

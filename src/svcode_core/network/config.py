@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from typing import Any, TypeVar
 
 from ..config import ConfigError, check_int
+from ..physics.geometry import context_shifts
 
 __all__ = ["PE_SCHEMES", "BlockConfig", "ModelConfig"]
 
@@ -122,6 +123,13 @@ class ModelConfig(BlockConfig):
         the readings that the field's edge strips need and that lie a pitch away, beyond
         the patch. ``False``: the nine sub-views, one first convolution shared by them.
         Model files written before this option existed load with ``False``.
+    context_reach : int
+        With :attr:`lens_context`, how many pitches left and right the crops go
+        (:func:`~svcode_core.physics.geometry.context_shifts`): 1, the neighbours' places
+        (9 crops per lens), or 2, also two pitches left and right (11 crops per lens), where
+        the one reading of the edge strips' equations that a single lens column sees alone
+        lies. Must be 1 without lens context. Model files written before this option
+        existed load with 1.
     output : {"sigmoid", "linear"}
         Output activation of both stages. ``"sigmoid"`` is the published design.
         ``"linear"`` leaves the last convolution unbounded while training and clamps it
@@ -148,6 +156,7 @@ class ModelConfig(BlockConfig):
     mask_spacing: int = 0
     pool_window: int = 0
     lens_context: bool = False
+    context_reach: int = 1
 
     block_lists = ("demix_enc_blocks", "demix_dec_blocks", "recon_enc_blocks",
                    "recon_dec_blocks")  # fmt: skip
@@ -178,8 +187,9 @@ class ModelConfig(BlockConfig):
 
     @property
     def views_per_lens(self) -> int:
-        """Input crops per lens of the demixing stage: 9 with :attr:`lens_context`, else 1."""
-        return 9 if self.lens_context else 1
+        """Input crops per lens of the demixing stage: with :attr:`lens_context` 9 at
+        reach 1 and 11 at reach 2, else 1."""
+        return len(context_shifts(self.context_reach)) if self.lens_context else 1
 
     def replace(self, **changes: Any) -> ModelConfig:
         """A validated copy with some fields changed."""
@@ -188,7 +198,7 @@ class ModelConfig(BlockConfig):
     # --------------------------------------------------------------- validation
     def validate(self) -> ModelConfig:
         """Check every field; raise :class:`~svcode_core.config.ConfigError` naming it."""
-        for name in ("width", "view_width", "pe_bands", "mlp_hidden"):
+        for name in ("width", "view_width", "pe_bands", "mlp_hidden", "context_reach"):
             check_int(name, getattr(self, name), minimum=1)
         for name in ("demix_middle_blocks", "recon_middle_blocks", "mask_spacing", "pool_window"):
             check_int(name, getattr(self, name), minimum=0)
@@ -213,4 +223,6 @@ class ModelConfig(BlockConfig):
                      "lens_context"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"{name}: must be true or false, got {getattr(self, name)!r}")
+        if self.context_reach != 1 and not self.lens_context:
+            raise ConfigError(f"context_reach: {self.context_reach} needs lens_context")
         return self

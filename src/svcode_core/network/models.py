@@ -590,7 +590,7 @@ class SVCoDe(_MaskedModel):
         self, views: torch.Tensor, origins: torch.Tensor | Sequence, sub_view_size: int
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """``(demixed (B, 9, H, W), reconstruction (B, 1, H, W))`` from ``views`` ``(B, 9,
-        H, W)`` (``(B, 81, H, W)`` with ``lens_context``)."""
+        H, W)`` (``(B, 9 k, H, W)`` with ``k`` crops per lens with ``lens_context``)."""
         levels = self._levels()
         padded, grids = self._prepare(views, origins, sub_view_size, levels)
         demixed = self.demix.run(padded, grids)
@@ -599,11 +599,12 @@ class SVCoDe(_MaskedModel):
         return demixed[..., :h, :w], recon[..., :h, :w]
 
 
-def with_lens_context(model: SVCoDe) -> SVCoDe:
-    """A copy of ``model`` whose demixing stage also takes the crops a lens pitch away
-    (:attr:`ModelConfig.lens_context`), computing exactly what ``model`` computes until it
-    is trained further: the new inputs enter with zero weights. The starting point for
-    fine-tuning a model without lens context.
+def with_lens_context(model: SVCoDe, reach: int = 1) -> SVCoDe:
+    """A copy of ``model`` whose demixing stage also takes the crops up to ``reach``
+    lens pitches away (:attr:`ModelConfig.lens_context`, :attr:`ModelConfig.context_reach`),
+    computing exactly what ``model`` computes until it is trained further: the new inputs
+    enter with zero weights. The starting point for fine-tuning a model without lens
+    context, or with a shorter reach.
 
     Examples
     --------
@@ -616,15 +617,18 @@ def with_lens_context(model: SVCoDe) -> SVCoDe:
     >>> torch.allclose(before, after, rtol=1e-5, atol=1e-6)  # float32 sums in another order
     True
     """
-    if model.model_config.lens_context:
-        raise ValueError("the model already has lens context")
-    wide = SVCoDe(model.model_config.replace(lens_context=True))
+    config = model.model_config
+    if config.lens_context and reach <= config.context_reach:
+        raise ValueError(f"the model already has lens context of reach {config.context_reach}")
+    wide = SVCoDe(config.replace(lens_context=True, context_reach=reach))
     state = model.state_dict()
     narrow, bias = state["demix.intro.weight"], state["demix.intro.bias"]
-    weight = narrow.new_zeros(N_LENSES, narrow.shape[0], wide.demix.views_per_lens,
-                              *narrow.shape[2:])
-    weight[:, :, :1] = narrow  # each lens's own crop (context shift (0, 0)) comes first
+    if not config.lens_context:  # one first convolution shared by the nine lenses
+        narrow, bias = narrow.repeat(N_LENSES, 1, 1, 1), bias.repeat(N_LENSES)
+    narrow = narrow.unflatten(0, (N_LENSES, -1))  # (lens, out, crops, k, k)
+    weight = narrow.new_zeros(*narrow.shape[:2], wide.demix.views_per_lens, *narrow.shape[3:])
+    weight[:, :, : narrow.shape[2]] = narrow  # a shorter reach's crops come first
     state["demix.intro.weight"] = weight.flatten(0, 1)
-    state["demix.intro.bias"] = bias.repeat(N_LENSES)
+    state["demix.intro.bias"] = bias
     wide.load_state_dict(state)
     return wide.to(next(model.parameters()).device)

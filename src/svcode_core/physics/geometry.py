@@ -16,6 +16,7 @@ from ..config import N_LENSES, SystemConfig
 __all__ = [
     "CONTEXT_SHIFTS",
     "assemble_frame",
+    "context_shifts",
     "context_views",
     "crop_to_sensor",
     "extract_sub_views",
@@ -28,8 +29,26 @@ __all__ = [
 ]
 
 CONTEXT_SHIFTS = ((0, 0), (-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
-"""Shifts of a lens's crop in lens pitches for :func:`context_views`: itself first, then its
-eight neighbours' places, row-major."""
+"""Shifts of a lens's crop in lens pitches for :func:`context_views` at reach 1: itself
+first, then its eight neighbours' places, row-major."""
+
+
+def context_shifts(reach: int = 1) -> tuple[tuple[int, int], ...]:
+    """Shifts in lens pitches of the crops :func:`context_views` cuts per lens.
+
+    Reach 1 is :data:`CONTEXT_SHIFTS`; each further step of reach adds the crops that many
+    pitches to the left and to the right, not up or down: in the presets the sensor's
+    rows end within two pitches of every lens row's sub-view, so such crops would lie
+    off the sensor where the edge strips need them.
+
+    Examples
+    --------
+    >>> context_shifts(2)[9:]
+    ((0, -2), (0, 2))
+    """
+    if not isinstance(reach, int) or isinstance(reach, bool) or reach < 1:
+        raise ValueError(f"reach must be an integer >= 1, got {reach!r}")
+    return CONTEXT_SHIFTS + tuple((0, sign * k) for k in range(2, reach + 1) for sign in (-1, 1))
 
 
 def normalized_coordinates(
@@ -154,16 +173,20 @@ def lens_pitch(config: SystemConfig) -> tuple[int, int]:
 
 def context_views(
     frame: torch.Tensor, config: SystemConfig, origin: tuple[int, int] = (0, 0),
-    size: int | None = None,
+    size: int | None = None, reach: int = 1,
 ) -> torch.Tensor:
     """Each lens's crop of a padded frame and the same crop moved by one lens pitch
-    towards each of its eight neighbours (:data:`CONTEXT_SHIFTS`).
+    towards each of its eight neighbours (:data:`CONTEXT_SHIFTS`), and with ``reach`` 2 or
+    more also by two or more pitches left and right (:func:`context_shifts`).
 
     The readings a pitch away carry what one position of the nine sub-views leaves open
     where some lenses' images fall off the sensor: at the field's left edge the lenses'
     sums at column ``u`` mix ``O(u)``, ``O(u + pitch)`` and ``O(u + 2·pitch)``, and the
-    right lenses' reading at ``u + pitch`` is the third equation. The centre crop of lens
-    ``ℓ`` (channel ``9ℓ``) is its sub-view, as from :func:`extract_sub_views`.
+    right lenses' reading at ``u + pitch`` is the third equation. That equation mixes two
+    more unknowns, though; the one reading of the chain that a single lens column sees
+    alone lies two pitches beyond the right lenses' own crop, which reach 2 adds (and
+    symmetrically at the right edge). The first crop of lens ``ℓ`` (channel ``kℓ`` for
+    ``k`` crops per lens) is its sub-view, as from :func:`extract_sub_views`.
 
     Parameters
     ----------
@@ -174,16 +197,19 @@ def context_views(
         Top-left corner of the crops in sub-view pixels (a tile's origin).
     size : int, optional
         Side of the crops; default the sub-view ``S``.
+    reach : int
+        How many pitches left and right the crops go (:func:`context_shifts`).
 
     Returns
     -------
     torch.Tensor
-        Shape ``(..., 81, size, size)``, lens-major: channel ``9ℓ + k`` is lens ``ℓ``
-        shifted by ``CONTEXT_SHIFTS[k]`` pitches; zero outside the padded frame.
+        Shape ``(..., 9 k, size, size)`` with ``k = len(context_shifts(reach))`` (81 at
+        reach 1), lens-major: channel ``k ℓ + j`` is lens ``ℓ`` shifted by
+        ``context_shifts(reach)[j]`` pitches; zero outside the padded frame.
     """
     _check_frame(frame, config.padded_shape, "padded sensor frame")
     pitch = np.asarray(lens_pitch(config))
-    shifts = np.asarray(CONTEXT_SHIFTS) * pitch
+    shifts = np.asarray(context_shifts(reach)) * pitch
     corners = (sub_view_origins(config)[:, None] + np.asarray(origin) + shifts).reshape(-1, 2)
     return _crops(frame, corners, config.sub_view_size if size is None else size)
 

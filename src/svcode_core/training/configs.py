@@ -44,7 +44,7 @@ def config_class(method: str) -> type:
 
 
 def model_config_from(spec: str, ablation: str = "none", method: str = "svcode",
-                      lens_context: bool = False) -> AnyModelConfig:
+                      lens_context: int = 0) -> AnyModelConfig:
     """The configuration of ``method`` from ``"mini"``, ``"reference"`` (SV-CoDe only) or a
     JSON file, with the SV-CoDe options (:func:`with_svcode_options`).
 
@@ -69,15 +69,16 @@ def model_config_from(spec: str, ablation: str = "none", method: str = "svcode",
 
 
 def with_svcode_options(config: AnyModelConfig, method: str, ablation: str = "none",
-                        lens_context: bool = False) -> AnyModelConfig:
-    """``config`` with an ablation (:data:`ABLATIONS`) and the lens context
-    (:attr:`~svcode_core.network.ModelConfig.lens_context`) applied; both belong to SV-CoDe
-    and are refused for the configuration of another method.
+                        lens_context: int = 0) -> AnyModelConfig:
+    """``config`` with an ablation (:data:`ABLATIONS`) and the lens context of reach
+    ``lens_context`` (0: none; :attr:`~svcode_core.network.ModelConfig.lens_context`,
+    :attr:`~svcode_core.network.ModelConfig.context_reach`) applied; both belong to
+    SV-CoDe and are refused for the configuration of another method.
 
     Examples
     --------
-    >>> with_svcode_options(ModelConfig.mini(), "svcode", lens_context=True).lens_context
-    True
+    >>> with_svcode_options(ModelConfig.mini(), "svcode", lens_context=2).views_per_lens
+    11
     """
     asked = [flag for flag, on in (("--ablation", ablation != "none"),
                                    ("--lens-context", lens_context)) if on]
@@ -87,7 +88,9 @@ def with_svcode_options(config: AnyModelConfig, method: str, ablation: str = "no
             raise ValueError(f"{' and '.join(asked)} {verb} to SV-CoDe, not to --method {method}")
         return config
     config = config.replace(**ABLATIONS[ablation])
-    return config.replace(lens_context=True) if lens_context else config
+    if not lens_context:
+        return config
+    return config.replace(lens_context=True, context_reach=int(lens_context))
 
 
 def _config_file(spec: str, presets: str) -> Path:

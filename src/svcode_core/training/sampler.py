@@ -142,6 +142,9 @@ class PatchDataset(_NoisySamples):
         (:func:`~svcode_core.physics.geometry.context_views`), for a model with
         :attr:`~svcode_core.network.ModelConfig.lens_context`. These crops share sensor
         pixels, so the noise is drawn once on the whole sensor frame.
+    context_reach : int
+        With ``lens_context``, how many pitches left and right the crops go
+        (:attr:`~svcode_core.network.ModelConfig.context_reach`; ``(99, P, P)`` at 2).
 
     Notes
     -----
@@ -159,10 +162,12 @@ class PatchDataset(_NoisySamples):
         seed: int = 0,
         noise: bool = True,
         lens_context: bool = False,
+        context_reach: int = 1,
     ) -> None:
         super().__init__(data, frames, fixed_noise, seed, noise)
         system = data.system
         self.patch, self.lens_context = system.patch_size, lens_context
+        self.context_reach = context_reach
         self.origins = TileGrid(system.sub_view_size, self.patch, system.patch_stride).origins
         if not lens_context:  # noise per view crop: needs crops without shared pixels
             check_disjoint_view_patches(system, self.patch)
@@ -184,7 +189,8 @@ class PatchDataset(_NoisySamples):
         crop = (slice(r, r + self.patch), slice(c, c + self.patch))
         if self.lens_context:
             padded = self.padded_frame(frame, generator)
-            views = context_views(padded, self.system, (int(r), int(c)), self.patch)
+            views = context_views(padded, self.system, (int(r), int(c)), self.patch,
+                                  self.context_reach)
         else:
             views = torch.from_numpy(np.array(self.data.views[frame][(slice(None), *crop)]))
             if self.noise:

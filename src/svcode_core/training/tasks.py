@@ -64,7 +64,8 @@ class PatchTask:
     ) -> PatchDataset:
         """The samples of ``frames``."""
         return PatchDataset(data, frames, fixed_noise=fixed_noise, seed=seed,
-                            lens_context=self.config.lens_context)
+                            lens_context=self.config.lens_context,
+                            context_reach=self.config.context_reach)
 
     def origins(self, dataset: PatchDataset) -> int:
         """Distinct sample origins per frame (patches at one origin share their masks)."""
