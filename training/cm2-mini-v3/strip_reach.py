@@ -8,7 +8,7 @@ validation frames as the relative squared error ``Σ (fit − target)² / Σ tar
 Columns 64-79 are the comparison away from the edge.
 
 Usage (from the repository root, after ``training/resume.sh`` made the data):
-``python training/cm2-mini-v3/strip_reach.py``; about a minute on one thread.
+``python training/cm2-mini-v3/strip_reach.py``; about 15 s on one thread.
 """
 
 from __future__ import annotations
@@ -42,20 +42,28 @@ def readings(frame: np.ndarray, rows: np.ndarray, cols: np.ndarray, reach: int,
     return np.stack(out, -1)
 
 
-def relative_errors(cols: np.ndarray, reach: int) -> list[float]:
-    """Validation relative squared error of the fit, per lens of :data:`LENSES`."""
+def load() -> tuple[int, tuple[list[int], list[int]], dict[int, np.ndarray], np.ndarray]:
+    """The lens pitch, the (training, validation) frames used, their padded frames and
+    the demixed targets (memory-mapped), read once for every fit."""
     system = SystemConfig.load(f"{DATA}/system.json")
     manifest = json.load(open(f"{DATA}/manifest.json", encoding="utf-8"))
     views = np.load(f"{DATA}/views.npy", mmap_mode="r")
-    demixed = np.load(f"{DATA}/demixed.npy", mmap_mode="r")
-    pitch = lens_pitch(system)[1]
     splits = (manifest["train_frames"][:80], manifest["val_frames"][:24])
     frames = {f: assemble_frame(torch.from_numpy(np.array(views[f])), system).numpy()
               for split in splits for f in split}
+    demixed = np.load(f"{DATA}/demixed.npy", mmap_mode="r")
+    return lens_pitch(system)[1], splits, frames, demixed
+
+
+def relative_errors(data: tuple, cols: np.ndarray, reach: int) -> list[float]:
+    """Validation relative squared error of the fit, per lens of :data:`LENSES`, on the
+    data of :func:`load`."""
+    pitch, splits, frames, demixed = data
+    size = demixed.shape[-1]
     errors = []
     for lens in LENSES:
         miss = energy = 0.0
-        for start in range(0, system.sub_view_size, BAND):
+        for start in range(0, size, BAND):
             rows = np.arange(start, start + BAND)
             fits = []
             for split in splits:
@@ -73,12 +81,13 @@ def relative_errors(cols: np.ndarray, reach: int) -> list[float]:
 
 
 def main() -> None:
+    data = load()
     print(f"| columns | reach (pitches) | relative squared error, lenses {LENSES} |")
     print("|---|---|---|")
     for label, cols, reaches in (("0-15 (left strip)", np.arange(16), (1, 2, 3, 4)),
                                  ("64-79", np.arange(64, 80), (2, 3, 4))):
         for reach in reaches:
-            errors = relative_errors(cols, reach)
+            errors = relative_errors(data, cols, reach)
             print(f"| {label} | {reach} | {' / '.join(f'{e:.3f}' for e in errors)} |",
                   flush=True)
 
