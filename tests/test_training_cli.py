@@ -95,6 +95,12 @@ def test_train_from_initial_weights(tiny_system, tiny_model_config, tmp_path, ca
     assert main(farther) == 0
     far, _ = load_model(tmp_path / "farther" / "best.safetensors", tiny_system)
     assert far.model_config == config.replace(lens_context=True, context_reach=2)
+    # a fine-tuning keeps the model file's reach; a shorter one is refused before training
+    shorter = [*args[:4], str(tmp_path / "shorter"), *args[5:7], "--init",
+               str(tmp_path / "farther" / "best.safetensors"), *args[9:], "--lens-context"]
+    assert main(shorter) == 2
+    assert "already has the lens context of reach 2" in capsys.readouterr().err
+    assert not (tmp_path / "shorter").exists()
     assert main([*args, "--method", "fouriernet", "--lens-context"]) == 2
     assert main([*args, "--ablation", "no-pe"]) == 2
     assert "leave out --model-config and --ablation" in capsys.readouterr().err

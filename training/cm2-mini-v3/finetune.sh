@@ -38,6 +38,9 @@
 #   context-ring4-no-pe
 #                     the two fine-tunings above for the ablations of the lens-context model
 #                     (context-scratch.sh no-coordgate|no-pe), so that they have its budget
+#   context-ring-reach2, context-ring4-reach2
+#                     the same two fine-tunings for the model trained from scratch with the
+#                     lens context reaching two pitches (context-scratch.sh reach2)
 # The v2 model is ../cm2-mini-v2/run/best.safetensors, its ablations'
 # ../cm2-mini-v2/ablations/<name>/best.safetensors.
 # Usage (from the repository root): bash training/cm2-mini-v3/finetune.sh ARM
@@ -77,6 +80,10 @@ case "$arm" in
   context-ring4) extra=(--init "$here/context-ring/best.safetensors" "${ring4[@]}");;
   context-ring4-no-coordgate|context-ring4-no-pe)
     extra=(--init "$here/context-ring-${arm#context-ring4-}/best.safetensors" "${ring4[@]}");;
+  context-ring-reach2)
+    extra=(--init "$here/context-scratch-reach2/best.safetensors" "${ring2[@]}" --lens-context 2);;
+  context-ring4-reach2)
+    extra=(--init "$here/context-ring-reach2/best.safetensors" "${ring4[@]}" --lens-context 2);;
   isolated) export OBJECTS=mixed-isolated
             extra=(--init "$here/context-ring/best.safetensors" --lens-context
                    --mse-weight 100 --epochs 4 --lr 2e-4 --warmup-steps 100 --seed 9
@@ -87,7 +94,7 @@ case "$arm" in
                          --edge-weight 4 --ring-weight 4);;
   reach2) extra=(--init "$here/context-ring4/best.safetensors" "${ring4[@]}" --epochs 6
                   --seed 11 --lens-context 2);;
-  *) echo "finetune: context, mse, context-mse, mse-no-coordgate, mse-no-pe, mse-long, mse-long2, mse-long3, edge, ring2, ring4, ring2-long, context-ring, context-ring4, isolated, ring4-isolated, reach2 or context-ring[4]-no-coordgate|no-pe" >&2
+  *) echo "finetune: context, mse, context-mse, mse-no-coordgate, mse-no-pe, mse-long, mse-long2, mse-long3, edge, ring2, ring4, ring2-long, context-ring, context-ring4, isolated, ring4-isolated, reach2 or context-ring[4]-no-coordgate|no-pe|reach2" >&2
      exit 2;;
 esac
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"

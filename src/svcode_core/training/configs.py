@@ -73,7 +73,8 @@ def with_svcode_options(config: AnyModelConfig, method: str, ablation: str = "no
     """``config`` with an ablation (:data:`ABLATIONS`) and the lens context of reach
     ``lens_context`` (0: none; :attr:`~svcode_core.network.ModelConfig.lens_context`,
     :attr:`~svcode_core.network.ModelConfig.context_reach`) applied; both belong to
-    SV-CoDe and are refused for the configuration of another method.
+    SV-CoDe and are refused for the configuration of another method. A reach shorter than
+    the one ``config`` already has is refused too.
 
     Examples
     --------
@@ -90,6 +91,11 @@ def with_svcode_options(config: AnyModelConfig, method: str, ablation: str = "no
     config = config.replace(**ABLATIONS[ablation])
     if not lens_context:
         return config
+    if config.lens_context and lens_context < config.context_reach:
+        raise ValueError(f"--lens-context {lens_context}: the network configuration already "
+                         f"has the lens context of reach {config.context_reach}, which a "
+                         "shorter reach would drop; leave --lens-context out or give "
+                         f"{config.context_reach} or more")  # fmt: skip
     return config.replace(lens_context=True, context_reach=int(lens_context))
 
 

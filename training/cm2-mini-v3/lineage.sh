@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# cm2-mini v3: one variant of the lens-context model through the bundled model's whole
+# recipe, resumable over sessions: context-scratch.sh VARIANT (20 epochs from scratch), then
+# finetune.sh context-ring-VARIANT (6 epochs) and context-ring4-VARIANT (8 epochs). When a
+# stage ends its resume state is copied into its folder here (../cm2-mini-v2/snapshot.sh),
+# where the next stage takes its initial weights from; a finished stage is passed over.
+# About 10 CPU-hours on one thread from scratch.
+#   no-coordgate, no-pe   the ablations, at the bundled model's budget
+#   reach2                the lens context reaching two pitches left and right
+# Usage (from the repository root): bash training/cm2-mini-v3/lineage.sh VARIANT
+set -euo pipefail
+variant="${1:-}"
+case "$variant" in
+  no-coordgate|no-pe|reach2) ;;
+  *) echo "lineage: no-coordgate, no-pe or reach2" >&2; exit 2;;
+esac
+here="$(cd "$(dirname "$0")" && pwd)"
+snapshot="$here/../cm2-mini-v2/snapshot.sh"
+bash "$here/context-scratch.sh" "$variant"
+bash "$snapshot" "runs/v3-context-scratch-$variant" "$here/context-scratch-$variant"
+for arm in context-ring context-ring4; do
+  bash "$here/finetune.sh" "$arm-$variant"
+  bash "$snapshot" "runs/v3-$arm-$variant" "$here/$arm-$variant"
+done
