@@ -12,7 +12,7 @@ inside them. Unlike ``bench/ring_gap.py`` each scene is imaged in place only, so
 and ring hold different content; the question is what a refinement gains and loses.
 
 Usage (from the repository root): ``python training/cm2-mini-v3/refine_probe.py``; about
-20 minutes on one thread. Writes ``refine-probe.md`` beside this file.
+10 minutes on one thread. Writes ``refine-probe.md`` beside this file.
 """
 
 from __future__ import annotations
