@@ -3,7 +3,9 @@
 # recipe, resumable over sessions: context-scratch.sh VARIANT (20 epochs from scratch), then
 # finetune.sh context-ring-VARIANT (6 epochs) and context-ring4-VARIANT (8 epochs). When a
 # stage ends its resume state is copied into its folder here (../cm2-mini-v2/snapshot.sh),
-# where the next stage takes its initial weights from; a finished stage is passed over.
+# where the next stage takes its initial weights from, and its best weights are scored
+# by ../../bench/ring_gap.py (the outer ring against the centre on the same content, both
+# regimes, about 2 minutes) into ring-gap.md there; a finished stage is passed over.
 # About 10 CPU-hours on one thread from scratch.
 #   no-coordgate, no-pe   the ablations, at the bundled model's budget
 #   reach2                the lens context reaching two pitches left and right
@@ -15,10 +17,18 @@ case "$variant" in
   *) echo "lineage: no-coordgate, no-pe or reach2" >&2; exit 2;;
 esac
 here="$(cd "$(dirname "$0")" && pwd)"
-snapshot="$here/../cm2-mini-v2/snapshot.sh"
+
+finished() {  # copy a finished stage here and score its best weights, unless done before
+  local stage="$1"
+  bash "$here/../cm2-mini-v2/snapshot.sh" "runs/v3-$stage" "$here/$stage"
+  [ "$here/$stage/ring-gap.md" -nt "$here/$stage/best.safetensors" ] ||
+    python "$here/../../bench/ring_gap.py" --weights "$here/$stage/best.safetensors" \
+      --no-admm --out "$here/$stage/ring-gap"
+}
+
 bash "$here/context-scratch.sh" "$variant"
-bash "$snapshot" "runs/v3-context-scratch-$variant" "$here/context-scratch-$variant"
+finished "context-scratch-$variant"
 for arm in context-ring context-ring4; do
   bash "$here/finetune.sh" "$arm-$variant"
-  bash "$snapshot" "runs/v3-$arm-$variant" "$here/$arm-$variant"
+  finished "$arm-$variant"
 done
