@@ -85,17 +85,16 @@ def scores(truth: np.ndarray, estimate: np.ndarray) -> dict[str, float]:
 def refinements(system: SystemConfig) -> Callable[[np.ndarray], dict[str, np.ndarray]]:
     """A function from a raw frame to SV-CoDe's reconstruction and every refinement."""
     svcode = build_reconstructor("svcode", system, require_bundled_weights(system))
-    admm = {steps: build_reconstructor("admm", system, rank=ADMM_RANK, iterations=steps,
-                                       tolerance=0.0) for steps in ADMM_STEPS}
-    solver = admm[ADMM_STEPS[0]].solver
+    admm = build_reconstructor("admm", system, rank=ADMM_RANK)
+    solver = admm.solver
     operator, lipschitz = solver.operator, solver.weights[2]  # c₃ = ‖A‖²
 
     def run(raw: np.ndarray) -> dict[str, np.ndarray]:
         start = np.asarray(svcode.reconstruct(raw).reconstruction, dtype=np.float64)
-        y = solver._frame(admm[ADMM_STEPS[0]]._padded(raw, 0))
+        y = solver._frame(admm._padded(raw, 0))
         x0 = torch.as_tensor(start, dtype=y.dtype)
         found = {"SV-CoDe": x0}
-        found |= {f"LSV-ADMM from it, {n} it": admm[n].reconstruct_tensor(raw, x0)
+        found |= {f"LSV-ADMM from it, {n} it": solver.solve(y, x0, n, tolerance=0.0).x
                   for n in ADMM_STEPS}
         cg = conjugate_gradients(operator, x0, y, max(CG_STEPS))
         found |= {f"CG from it, {n} steps": cg[n] for n in CG_STEPS}
