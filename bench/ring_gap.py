@@ -32,7 +32,7 @@ from svcode_core.evaluation.field_position import (
     moved_scene,
     same_content_zones,
 )
-from svcode_core.evaluation.metrics import image_quality
+from svcode_core.evaluation.metrics import edge_columns, image_quality
 from svcode_core.physics.cm2 import CM2Operator
 from svcode_core.physics.psf_io import model_psfs
 from svcode_core.physics.simulate import Simulator
@@ -43,13 +43,6 @@ RESULTS = Path(__file__).parent / "results"
 MOVES = ("rows", "columns", "corners")
 #: the columns move, split at the edge strips that only six of the nine lenses see
 COLUMN_PARTS = ("column_strips", "columns_inside")
-
-
-def edge_columns(size: int) -> np.ndarray:
-    """The field's left and right edge strips (:data:`EDGE_STRIP` columns each)."""
-    strips = np.zeros((size, size), dtype=bool)
-    strips[:, :EDGE_STRIP] = strips[:, size - EDGE_STRIP:] = True
-    return strips
 
 
 def scene_row(reconstruct: Reconstruct, simulator: Simulator, index: int,
@@ -69,7 +62,7 @@ def scene_row(reconstruct: Reconstruct, simulator: Simulator, index: int,
     by_move = {f"same_gap_{name}": same_content_zones(truth, estimate, {shift: moved[shift]}).gap
                for name, shift in zip(MOVES, shifts, strict=True)}
     columns = {shifts[1]: moved[shifts[1]]}
-    strips = edge_columns(len(truth))
+    strips = edge_columns(len(truth), EDGE_STRIP)
     by_move["same_gap_column_strips"] = same_content_zones(truth, estimate, columns,
                                                            ring=strips).gap
     by_move["same_gap_columns_inside"] = same_content_zones(truth, estimate, columns,

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from svcode_core.evaluation.metrics import field_zones, image_quality, psnr, ssim
+from svcode_core.evaluation.metrics import edge_columns, field_zones, image_quality, psnr, ssim
 
 
 @pytest.fixture
@@ -49,6 +49,15 @@ def test_field_zones_geometry():
     # areas: a disc of radius 0.5, and the square minus a disc of radius 0.8 (side 2)
     assert centre.mean() == pytest.approx(math.pi * 0.25 / 4, abs=0.01)
     assert ring.mean() == pytest.approx(1 - math.pi * 0.64 / 4, abs=0.01)
+
+
+def test_edge_columns_are_the_outer_columns_only():
+    strips = edge_columns(64, 16)
+    assert strips[:, :16].all() and strips[:, 48:].all() and not strips[:, 16:48].any()
+    assert strips.mean() == 0.5
+    for width in (0, 33):
+        with pytest.raises(ValueError, match="do not fit"):
+            edge_columns(64, width)
 
 
 def test_ring_error_shows_only_in_ring_psnr():

@@ -25,7 +25,7 @@ import torch
 
 from svcode_core.config import SystemConfig
 from svcode_core.evaluation.bench import ADMM_RANK, SCENES, regime_simulator, scene_object
-from svcode_core.evaluation.metrics import image_quality
+from svcode_core.evaluation.metrics import edge_columns, image_quality, psnr
 from svcode_core.methods.build import build_reconstructor
 from svcode_core.physics.cm2 import CM2Operator
 from svcode_core.physics.psf_io import model_psfs
@@ -71,15 +71,11 @@ def landweber(operator: CM2Operator, x0: torch.Tensor, y: torch.Tensor, steps: i
 
 def scores(truth: np.ndarray, estimate: np.ndarray) -> dict[str, float]:
     """PSNR over the field, its centre and ring zones, the edge strips and inside them."""
-    strips = np.zeros(truth.shape, dtype=bool)
-    strips[:, :EDGE_STRIP] = strips[:, -EDGE_STRIP:] = True
+    strips = edge_columns(len(truth), EDGE_STRIP)
     quality = image_quality(truth, estimate, data_range=1.0)
-
-    def psnr(where: np.ndarray) -> float:
-        return float(-10 * np.log10(np.mean((truth[where] - estimate[where]) ** 2)))
-
     return {"psnr": quality["psnr"], "centre": quality["psnr_centre"],
-            "ring": quality["psnr_ring"], "strips": psnr(strips), "inside": psnr(~strips)}
+            "ring": quality["psnr_ring"], "strips": psnr(truth, estimate, 1.0, strips),
+            "inside": psnr(truth, estimate, 1.0, ~strips)}
 
 
 def refinements(system: SystemConfig) -> Callable[[np.ndarray], dict[str, np.ndarray]]:

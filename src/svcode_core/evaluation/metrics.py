@@ -27,6 +27,7 @@ from ..physics.geometry import normalized_coordinates
 __all__ = [
     "CENTRE_RADIUS",
     "RING_RADIUS",
+    "edge_columns",
     "field_zones",
     "image_quality",
     "psnr",
@@ -58,6 +59,23 @@ def field_zones(size: int) -> dict[str, np.ndarray]:
     axis = normalized_coordinates(size, dtype=torch.float64).numpy()
     radius = np.hypot(axis[:, None], axis[None, :])
     return {"centre": radius < CENTRE_RADIUS, "ring": radius > RING_RADIUS}
+
+
+def edge_columns(size: int, width: int) -> np.ndarray:
+    """Boolean mask ``(S, S)`` of the field's left and right edge strips, ``width`` columns
+    each: where the outer lenses' sub-views leave the sensor, so fewer than nine lenses see
+    the object.
+
+    Examples
+    --------
+    >>> edge_columns(6, 2).astype(int)[0].tolist()
+    [1, 1, 0, 0, 1, 1]
+    """
+    if not 0 < width <= size // 2:
+        raise ValueError(f"edge strips of {width} columns do not fit a field of {size}")
+    strips = np.zeros((size, size), dtype=bool)
+    strips[:, :width] = strips[:, size - width:] = True
+    return strips
 
 
 def psnr_from_mse(mse: float | torch.Tensor, data_range: float = 1.0) -> float | torch.Tensor:
