@@ -8,7 +8,8 @@ the bundled SV-CoDe model, every ``--weights`` model and LSV-ADMM (``K`` = 3,
 ``--admm-iterations``), per regime: the zone PSNRs in place (as in ``svcode bench``) and
 the same-content PSNRs at the centre and in the ring, scene means. ``--tile`` runs
 SV-CoDe on tiles of that size at half-tile stride instead of its planned tiling,
-``--pool-window`` pools its channel attention over that many pixels.
+``--pool-window`` pools its channel attention over that many pixels,
+``--refine-periphery`` refines its periphery with that many LSV-ADMM iterations.
 
 Run: ``OMP_NUM_THREADS=1 python bench/ring_gap.py [--weights FILE ...]`` (about half a
 minute per model and regime on one thread; LSV-ADMM at 50 iterations about 10 minutes
@@ -137,6 +138,8 @@ def main() -> None:
                         help="SV-CoDe tiles of TILE px at stride TILE/2 (default: planned)")
     parser.add_argument("--pool-window", type=int, default=None,
                         help="SV-CoDe's channel attention pooled over this many pixels")
+    parser.add_argument("--refine-periphery", type=int, default=0, metavar="N",
+                        help="SV-CoDe's periphery refined by N LSV-ADMM iterations")
     parser.add_argument("--admm-iterations", type=int, default=50,
                         help="LSV-ADMM iterations (default 50)")
     parser.add_argument("--no-admm", action="store_true", help="skip LSV-ADMM")
@@ -155,6 +158,9 @@ def main() -> None:
         knob += f", tile {args.tile}, stride {args.tile // 2}"
     if args.pool_window is not None:
         knob += f", pool {args.pool_window}"
+    if args.refine_periphery:
+        options |= {"refine_periphery": args.refine_periphery}
+        knob += f", refine {args.refine_periphery}"
     methods = svcode_methods(system, args.weights, knob, **options)
     if not args.no_admm:
         methods.append(admm_method(system, args.admm_iterations))

@@ -509,7 +509,7 @@ def test_tile_options_of_the_network_are_refused_for_a_baseline(scene, capsys):
     assert status == 2
     one_error_line(err, "--tile applies to --method svcode, not to --method wiener")
     for option in (["--pool-window", "96"], ["--mask-cache", "0"], ["--no-skip"],
-                   ["--batch-size", "2"]):
+                   ["--batch-size", "2"], ["--refine-periphery", "10"]):
         status, err = wiener(capsys, scene / "meas.tif", scene / "out.tif", *option)
         assert status == 2
         one_error_line(err, f"{option[0]} applies to --method svcode")

@@ -386,5 +386,8 @@ def test_benchmark_labels_and_scores_an_ablation_model(tiny_system, tiny_op, tin
     (row,) = svcode_rows(path, tiny_system, scenes, all_knobs=False)
     summary = row.summary()
     assert summary["method"] == "SV-CoDe (no CoordGate)" and np.isfinite(summary["psnr"])
+    plain, refined = (r.summary() for r in svcode_rows(path, tiny_system, scenes, all_knobs=2))
+    assert "refine" not in plain["knob"] and refined["knob"].endswith("refine 10")
+    assert np.isfinite(refined["psnr"]) and refined["psnr"] != plain["psnr"]
     with pytest.raises(ValueError, match="unknown method families"):
         run_benchmark(tiny_system, methods=("fouriernet",))

@@ -9,6 +9,7 @@ import torch
 from svcode_core.cli import main
 from svcode_core.config import SystemConfig
 from svcode_core.io import read_tiff, write_tiff
+from svcode_core.methods.periphery import periphery_weight
 from svcode_core.physics.calibration import CalibrationError, calibrate, read_positions
 from svcode_core.physics.cm2 import CM2Operator
 from svcode_core.physics.departures import Departures
@@ -178,6 +179,14 @@ def test_calibrate_command_and_every_command_uses_the_system(scan, tiny_model_co
     assert main(["reconstruct", str(sim / "measurement.tif"), "--weights",
                  str(tmp_path / "run" / "best.safetensors"), "--out",
                  str(tmp_path / "svcode.tif"), "--quiet"]) == 0
+    # and refines its periphery with the calibrated operator
+    assert main(["reconstruct", str(sim / "measurement.tif"), "--weights",
+                 str(tmp_path / "run" / "best.safetensors"), "--refine-periphery", "2", "--out",
+                 str(tmp_path / "refined.tif"), "--quiet"]) == 0
+    plain, refined = (read_tiff(tmp_path / f"{name}.tif")[0] for name in ("svcode", "refined"))
+    centre = periphery_weight(calibrated.sub_view_size) == 0
+    np.testing.assert_array_equal(refined[centre], plain[centre])
+    assert not np.array_equal(refined, plain)
     bench = tmp_path / "bench"
     assert main(["bench", "--quick", "--system", calibrated_json, "--methods", "deconvolution",
                  "--regimes", "matched", "--out", str(bench)]) == 0

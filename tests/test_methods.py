@@ -74,8 +74,8 @@ def test_unknown_methods_and_missing_weights_are_refused(tiny_system):
 
 
 @pytest.mark.parametrize(("method", "options", "expected"), [
-    ("svcode", {"tile_size": 64, "batch_size": 4, "skip_empty": False},
-     {"tile": 64, "batch_size": 4, "no_skip": True}),
+    ("svcode", {"tile_size": 64, "batch_size": 4, "skip_empty": False, "refine_periphery": 10},
+     {"tile": 64, "batch_size": 4, "no_skip": True, "refine_periphery": 10}),
     ("admm", {"iterations": 50, "tv_weight": 1e-3, "rank": 3},
      {"iterations": 50, "tv_weight": 1e-3, "rank": 3}),
     ("wiener", {"balance": 0.02, "boundary": "periodic", "precision": "fp64"},

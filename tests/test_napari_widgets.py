@@ -565,6 +565,10 @@ def test_pickers_fit_their_role_and_tiling_defaults_come_from_the_core(make_napa
     assert widget._panel.options().get("batch_size") == defaults["batch_size"]
     assert widget._panel.tile.value == (defaults["tile_size"] or 0)
     assert widget._panel.skip.value == defaults["skip_empty"]
+    assert widget._panel.refine.value == defaults["refine_periphery"] == 0
+    assert "refine_periphery" not in widget._panel.options()
+    widget._panel.refine.value = 10
+    assert widget._panel.options()["refine_periphery"] == 10
     assert "admm" in widget._panel.method.choices
     # a picker docked before the layers exist moves to the raw frame when it appears
     viewer.layers.clear()
@@ -582,7 +586,7 @@ def test_each_method_shows_only_its_options(make_napari_viewer):
     widget = _dock(viewer, ReconstructWidget)
     panel = widget._panel
     assert panel.method.choices == METHODS
-    expected = {"svcode": {"model", "precision", "tile", "batch", "skip"},
+    expected = {"svcode": {"model", "precision", "tile", "batch", "skip", "refine"},
                 "admm": {"precision", "rank", "iterations", "tv_weight"},
                 "wiener": {"precision", "rank", "balance", "boundary"},
                 "rl": {"precision", "rank", "iterations"},

@@ -67,7 +67,7 @@ def test_identity_model_returns_the_sub_views(tiny_system):
     np.testing.assert_allclose(result.views, expected, rtol=rtol, atol=1e-7)
     np.testing.assert_allclose(result.reconstruction, expected.mean(0), rtol=rtol, atol=1e-7)
     assert result.tiles_run == result.tiles_total and result.tiles_skipped == 0
-    assert set(result.timings) == {"prepare", "model", "blend", "total"}
+    assert set(result.timings) == {"prepare", "model", "blend", "refine", "total"}
 
 
 def test_origins_reach_the_model_as_global_coordinates(tiny_system):

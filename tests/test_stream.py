@@ -243,14 +243,16 @@ def test_cli_runs_a_baseline_with_its_options(tiny_system, stack, tmp_path, caps
         _cli([tmp_path / "meas.tif", "--out", out, "--rho", "1"])
 
 
-def test_frames_side_by_side_match_one_after_another(tiny_system, tiny_model_config):
+@pytest.mark.parametrize("refine", [0, 3])
+def test_frames_side_by_side_match_one_after_another(tiny_system, tiny_model_config, refine):
     """A whole-sub-view SV-CoDe model runs a stack's frames on threads side by side (one
-    torch thread each) with the same output as one after another, and torch's thread
-    count is restored."""
+    torch thread each) with the same output as one after another, its periphery
+    refinement too, and torch's thread count is restored."""
     from svcode_core.network import SVCoDe
     from svcode_core.run.parallel import local_frames
 
-    rec = Reconstructor(SVCoDe(tiny_model_config), tiny_system, skip_empty=False)
+    rec = Reconstructor(SVCoDe(tiny_model_config), tiny_system, skip_empty=False,
+                        refine_periphery=refine)
     assert rec.frames_side_by_side
     frames = np.random.default_rng(1).random((7, *tiny_system.sensor_shape), dtype=np.float32)
     before = torch.get_num_threads()

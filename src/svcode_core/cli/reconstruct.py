@@ -101,6 +101,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         "pixel (the training patch, 96 for the bundled model) instead of "
                         "the whole tile, so tiles of any size agree with the whole sub-view; "
                         "about 1.3x the time (default: as the model file says)")
+    parser.add_argument("--refine-periphery", type=int, metavar="N",
+                        help="svcode: refine the field's periphery (outer ring, edge strips) "
+                        "with N LSV-ADMM iterations started from the network's "
+                        "reconstruction, blended in from half the field radius outwards; "
+                        "10 raised the bundled model's held-out scores in every regime for "
+                        "about twice the time (default: 0, none)")
     parser.add_argument(
         "--workers",
         type=int,
@@ -228,7 +234,8 @@ def _refuse_baseline_options(args: argparse.Namespace) -> None:
 #: the options only the network takes (``args`` attribute → flag)
 _NETWORK_OPTIONS = {"tile": "--tile", "stride": "--stride", "batch_size": "--batch-size",
                     "no_skip": "--no-skip", "mask_cache": "--mask-cache",
-                    "pool_window": "--pool-window"}  # fmt: skip
+                    "pool_window": "--pool-window",
+                    "refine_periphery": "--refine-periphery"}  # fmt: skip
 
 
 def _refuse_network_options(args: argparse.Namespace, why: str) -> None:
@@ -276,6 +283,7 @@ def _spec(args: argparse.Namespace, system: SystemConfig) -> MethodSpec:
         "mask_cache_bytes": (DEFAULT_MASK_CACHE_BYTES if args.mask_cache is None
                              else args.mask_cache << 20),
         "pool_window": args.pool_window,
+        "refine_periphery": args.refine_periphery or 0,
     }
     return MethodSpec("svcode", system, str(weights), options)
 

@@ -20,11 +20,13 @@ Rows (per regime)
     * **Wiener** per view with balance 1e-3, 1e-2, 1e-1; **Richardson–Lucy** per view with
       10 and 30 iterations;
     * **SV-CoDe** (only with ``--weights`` or a bundled model): the planned tiling
-      (:func:`~svcode_core.methods.svcode.plan_tiles`) in every regime and, in the matched
-      one, the system's patch ``P`` at stride ``P/2`` and ``P/4`` and the planned tiling
-      with its channel attention pooled over ``P`` pixels (``--pool-window``); with ``--all-knobs``,
-      in the matched regime, also batches of one, mask cache off, bf16 and empty-tile
-      skipping off (knobs that change the time, not the estimate);
+      (:func:`~svcode_core.methods.svcode.plan_tiles`) without and with the periphery
+      refinement (:mod:`~svcode_core.methods.periphery`, ``refine_periphery`` 10) in every
+      regime and, in the matched one, the system's patch ``P`` at stride ``P/2`` and
+      ``P/4`` and the planned tiling with its channel attention pooled over ``P`` pixels
+      (``--pool-window``); with ``--all-knobs``, in the matched regime, also batches of
+      one, mask cache off, bf16 and empty-tile skipping off (knobs that change the time,
+      not the estimate);
     * learned baselines (``--learned``) and ablations (``--ablations``), one row each;
     * **LSV-ADMM defaults** (family ``admm-defaults``, only when asked for: minutes per
       frame): ``svcode reconstruct --method admm`` as a user runs it, the system's ``K``,
@@ -41,8 +43,9 @@ Timing and memory
     under-report). Where the peak cannot be reset (not Linux) the column is empty.
 
 ``--quick`` runs two scenes (one synthetic, one held-out), ADMM (``K`` = 3) to 30
-iterations, one Wiener and one RL setting and SV-CoDe's default knob (no footprint
-measurement), in every regime: a few minutes on one core. ``--regimes`` runs a subset,
+iterations, one Wiener and one RL setting and SV-CoDe's planned tiling without and with the
+periphery refinement (no footprint measurement), in every regime: a few minutes on one
+core. ``--regimes`` runs a subset,
 ``--methods`` a subset of the method families.
 """
 
@@ -65,6 +68,7 @@ from ..methods.baselines import LsvAdmm
 from ..methods.baselines.admm import settings_for
 from ..methods.build import build_reconstructor
 from ..methods.model_file import read_model_metadata
+from ..methods.periphery import REFINE_ITERATIONS
 from ..phantoms import HELD_OUT_IMAGES, held_out_image, make_object
 from ..physics.cm2 import CM2Operator
 from ..physics.departures import Departures
@@ -307,7 +311,8 @@ def svcode_rows(
     """SV-CoDe rows over tiling, mask cache, precision and skipping (or the default only).
 
     ``all_knobs``: ``True`` every knob, ``False`` the default only, an integer ``n`` the
-    first ``n`` (default: the planned tiling; then the system's patch ``P`` at stride
+    first ``n`` (default: the planned tiling; the same with the periphery refinement
+    (``refine_periphery``); then the system's patch ``P`` at stride
     ``P/2`` and ``P/4`` with batches of 8, channel attention pooled over ``P`` pixels
     (``pool_window``), ``P`` at ``P/2`` with batches of 1, cache off, bf16, skipping off).
 
@@ -322,6 +327,7 @@ def svcode_rows(
                "precision": "fp32", "skip": True}  # fmt: skip
     knobs = [
         planned,
+        {**planned, "refine": REFINE_ITERATIONS},  # the only knob with "refine"
         {**planned, "tile": patch, "stride": patch // 2, "batch": 8},
         {**planned, "tile": patch, "stride": patch // 4, "batch": 8},
         {**planned, "pool": patch},  # the only knob with "pool": other rows keep their labels
@@ -339,7 +345,7 @@ def svcode_rows(
                 "svcode", system, weights, precision=knob["precision"], tile_size=knob["tile"],
                 stride=knob["stride"], batch_size=knob["batch"], skip_empty=knob["skip"],
                 mask_cache_bytes=DEFAULT_MASK_CACHE_BYTES if knob["cache"] else 0,
-                pool_window=knob.get("pool"),
+                pool_window=knob.get("pool"), refine_periphery=knob.get("refine", 0),
             )  # fmt: skip
             rec.reconstruct(scenes[0].raw)  # warm-up: fills the mask cache, as in a recording
             return rec
@@ -451,7 +457,7 @@ def run_benchmark(
         if "deconvolution" in methods:
             new += deconvolution_rows(op, scenes, quick)
         if "svcode" in methods and weights is not None:
-            knobs = (all_knobs or 4) if regime == "matched" and not quick else 1
+            knobs = (all_knobs or 5) if regime == "matched" and not quick else 2
             new += svcode_rows(weights, system, scenes, all_knobs=knobs, cache=cache,
                                footprint=not quick)  # fmt: skip
         for path in ablations:

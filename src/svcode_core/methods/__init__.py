@@ -3,7 +3,8 @@
 * :mod:`.registry`: every method and architecture by name (the one list of them);
 * :mod:`.base`: the contract every reconstructor keeps, the input checks and precisions;
 * :mod:`.build`: a reconstructor (or a picklable recipe of one) from a method name;
-* :mod:`.svcode` (with :mod:`.tiling`), :mod:`.baselines`, :mod:`.learned`: the methods;
+* :mod:`.svcode` (with :mod:`.tiling` and :mod:`.periphery`, the refinement of its
+  reconstruction's periphery), :mod:`.baselines`, :mod:`.learned`: the methods;
 * :mod:`.frames`: how raw frames are checked and scaled; :mod:`.model_file`: model files.
 """
 

@@ -150,8 +150,9 @@ class ReconstructionResult:
         Demixed views ``(9, S, S)`` or ``(T, 9, S, S)`` when requested.
     timings : dict
         Seconds, summed over frames: always ``total``; SV-CoDe also per stage:
-        ``prepare`` (checks, padding, sub-views, skip test), ``model`` (inside the network)
-        and ``blend`` (the rest of the tiling loop).
+        ``prepare`` (checks, padding, sub-views, skip test), ``model`` (inside the network),
+        ``blend`` (the rest of the tiling loop) and ``refine`` (the periphery refinement,
+        0 without it).
     tiles_total, tiles_run, tiles_skipped : int
         Summed over frames; 0 for the methods that do not tile.
     """

@@ -76,7 +76,7 @@ class Method:
 
 _ALL = (
     Method(SVCODE, "SV-CoDe (network)", "SV-CoDe", SVCODE, ("fp32", "bf16", "fp16"),
-           options=("pool_window",), architecture="SVCoDe"),
+           options=("pool_window", "refine_periphery"), architecture="SVCoDe"),
     Method("admm", "LSV-ADMM (TV)", "LSV-ADMM", MODEL_BASED, ("fp32", "fp64"),
            options=("rank", "memory_budget", "iterations", "tv_weight", "rho", "tolerance",
                     "cg_iterations")),
@@ -112,6 +112,7 @@ OPTION_FLAGS: dict[str, str] = {
     "skip_empty": "--no-skip",
     "mask_cache_bytes": "--mask-cache",
     "pool_window": "--pool-window",
+    "refine_periphery": "--refine-periphery",
     "rank": "--rank",
     "memory_budget": "--memory-budget",
     "iterations": "--iterations",

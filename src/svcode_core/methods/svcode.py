@@ -46,6 +46,7 @@ from .base import (
     resolve_device,
 )
 from .frames import finite_frame
+from .periphery import PeripheryRefinement
 from .tiling import (
     DEFAULT_SKIP_FACTOR,
     TileGrid,
@@ -170,6 +171,11 @@ class Reconstructor(BaseReconstructor):
         (:attr:`~svcode_core.network.ModelConfig.pool_window`); default: as the model file
         says. Tiles of any size then agree with the whole sub-view (no seams), at about
         1.3× the time of a whole-sub-view tile.
+    refine_periphery : int
+        LSV-ADMM iterations that refine the field's periphery from the network's
+        reconstruction (:class:`~svcode_core.methods.periphery.PeripheryRefinement`); 0
+        (default): none. 10 raised the bundled ``cm2-mini`` model's held-out scores in
+        every regime, the outer ring most, for about twice the time of a frame.
 
     Examples
     --------
@@ -201,6 +207,7 @@ class Reconstructor(BaseReconstructor):
         mask_cache_bytes: int = DEFAULT_MASK_CACHE_BYTES,
         tile_memory_bytes: int = DEFAULT_TILE_MEMORY_BYTES,
         pool_window: int | None = None,
+        refine_periphery: int = 0,
     ) -> None:
         if not isinstance(system, SystemConfig):
             raise TypeError(f"system must be a SystemConfig, got {type(system).__name__}")
@@ -244,6 +251,13 @@ class Reconstructor(BaseReconstructor):
                              f"got {mask_cache_bytes!r}")
         if hasattr(self.model, "cache_masks"):
             self.model.cache_masks(enabled=mask_cache_bytes > 0, max_bytes=mask_cache_bytes)
+        if (isinstance(refine_periphery, bool) or not isinstance(refine_periphery, int)
+                or refine_periphery < 0):
+            raise ValueError(f"refine_periphery must be a whole number of LSV-ADMM iterations "
+                             f">= 0, got {refine_periphery!r}")  # fmt: skip
+        self.refinement = None
+        if refine_periphery > 0:
+            self.refinement = PeripheryRefinement(system, refine_periphery, str(self.device))
 
     @classmethod
     def from_weights(
@@ -328,7 +342,7 @@ class Reconstructor(BaseReconstructor):
         recon = np.empty((count, size, size), dtype=np.float32)
         views = np.empty((count, 9, size, size), dtype=np.float32) if return_views else None
         result = ReconstructionResult(recon, views)
-        timings = dict.fromkeys(("prepare", "model", "blend", "total"), 0.0)
+        timings = dict.fromkeys(("prepare", "model", "blend", "refine", "total"), 0.0)
         start_all = time.perf_counter()
 
         def run(tiles: np.ndarray, origins: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
@@ -349,6 +363,10 @@ class Reconstructor(BaseReconstructor):
             timings["model"] += output.model_seconds
             timings["blend"] += time.perf_counter() - start - output.model_seconds
             recon[index] = output.reconstruction
+            if self.refinement is not None:
+                start = time.perf_counter()
+                recon[index] = self.refinement(stack[index], recon[index], index)
+                timings["refine"] += time.perf_counter() - start
             if views is not None:
                 views[index] = output.views
             result.tiles_run += output.tiles_run
