@@ -119,7 +119,7 @@ class MethodPanel(Container):
                               value=defaults["refine_periphery"],
                               tooltip="LSV-ADMM iterations that refine the outer ring and edge "
                                       "strips from the network's reconstruction (10: higher "
-                                      "held-out scores for about twice the time); 0: none")
+                                      "held-out scores for 2–3× the time); 0: none")
         self.rank = SpinBox(label="rank K", min=0, max=1024, value=0,
                             tooltip="low-rank order of the forward model; 0: the system's")
         self.iterations = SpinBox(label="iterations", min=1, max=100_000, value=1)

@@ -106,7 +106,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         "with N LSV-ADMM iterations started from the network's "
                         "reconstruction, blended in from half the field radius outwards; "
                         "10 raised the bundled model's held-out scores in every regime for "
-                        "about twice the time (default: 0, none)")
+                        "2-3x the time (default: 0, none)")
     parser.add_argument(
         "--workers",
         type=int,
