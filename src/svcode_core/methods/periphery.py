@@ -3,7 +3,7 @@
 The network is weakest where fewer than nine lenses see the object: the outer ring and
 above all the 16-px column strips at the field's left and right edges. The measurement
 still determines those regions nearly as well as the centre (LSV-ADMM, which inverts the
-whole sensor at once, is as good in its ring as in its centre), but a few LSV-ADMM
+whole sensor at once, is within 1 dB of its centre in its ring), but a few LSV-ADMM
 iterations started from the network's reconstruction also pull the centre back towards
 the model-based solver's weaker estimate. :class:`PeripheryRefinement` keeps both
 strengths: it runs ``iterations`` LSV-ADMM iterations warm-started at the network's
