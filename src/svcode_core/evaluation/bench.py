@@ -45,8 +45,7 @@ Timing and memory
 ``--quick`` runs two scenes (one synthetic, one held-out), ADMM (``K`` = 3) to 30
 iterations, one Wiener and one RL setting and SV-CoDe's planned tiling without and with the
 periphery refinement (no footprint measurement), in every regime: a few minutes on one
-core. ``--regimes`` runs a subset,
-``--methods`` a subset of the method families.
+core. ``--regimes`` runs a subset, ``--methods`` a subset of the method families.
 """
 
 from __future__ import annotations
