@@ -15,9 +15,9 @@ and returns
 with ``w`` rising linearly with the normalised field radius ``ρ`` from 0 at
 ``ρ = 0.5`` to 1 at ``ρ = 1.1`` (:func:`periphery_weight`): the network's
 reconstruction inside half the field radius, the refined one in the corners. The ramp and
-the 10 iterations that :class:`~svcode_core.methods.svcode.Reconstructor` is usually given
-were chosen on validation frames of the bundled ``cm2-mini`` model's training
-distribution, not on the benchmark's scenes (the model card has the figures).
+:data:`REFINE_ITERATIONS` (10, the benchmark's refined row) were chosen on validation
+frames of the bundled ``cm2-mini`` model's training distribution, not on the benchmark's
+scenes (the model card has the figures).
 
 Only the reconstruction is refined; the demixed views stay the network's.
 """
