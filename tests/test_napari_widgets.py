@@ -692,6 +692,21 @@ def test_a_run_that_would_not_fit_in_memory_warns(monkeypatch):
     assert "about 2.0 h" in methods.Cost(7200.0, 0, "16,129 tiles").warning()
 
 
+def test_the_status_says_when_the_periphery_is_refined(qtbot, monkeypatch, tiny_system,
+                                                       model_file, make_napari_viewer):
+    viewer = make_napari_viewer()
+    _, widget = _stack_in_widget(viewer, tiny_system, model_file, 1)
+    widget._panel.refine.value = 2
+    texts: list[str] = []
+    show = ReconstructWidget._set_progress
+    monkeypatch.setattr(ReconstructWidget, "_set_progress",
+                        lambda self, *args, **kw: (texts.append(args[3]), show(self, *args, **kw)))
+    assert widget.start() is not None
+    _wait_done(qtbot, widget)
+    assert any(text.endswith("frame, refining the periphery…") for text in texts), texts
+    assert widget._status.value.startswith("Done")
+
+
 def test_cancelled_stack_adds_only_the_frames_done(qtbot, monkeypatch, tiny_system, model_file,
                                                    make_napari_viewer):
     model = _slow_model(monkeypatch, model_file, tiny_system, 0.0)  # a batch a frame

@@ -4,10 +4,13 @@ periphery, and its option on the reconstructor."""
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 import torch
 
+from svcode_core.methods.base import FrameProgress
 from svcode_core.methods.baselines import LsvAdmm, settings_for
 from svcode_core.methods.periphery import (
     PERIPHERY_RAMP,
@@ -16,6 +19,7 @@ from svcode_core.methods.periphery import (
     periphery_weight,
 )
 from svcode_core.methods.svcode import Reconstructor
+from svcode_core.methods.tiling import Cancelled
 from svcode_core.network import SVCoDe
 from svcode_core.phantoms import make_object
 from svcode_core.physics.cm2 import CM2Operator
@@ -96,6 +100,25 @@ def test_the_reconstructor_refines_the_reconstruction_only(tiny_system, tiny_mod
     np.testing.assert_array_equal(refined.views, plain.views)
     assert refined.timings["refine"] > 0 and plain.timings["refine"] == 0
     assert np.isfinite(refined.reconstruction).all() and refined.reconstruction.min() >= 0
+
+
+def test_progress_announces_the_refinement_and_cancel_skips_it(tiny_system, tiny_model_config,
+                                                                scene):  # fmt: skip
+    _, frame, _ = scene
+    rec = Reconstructor(SVCoDe(tiny_model_config), tiny_system, refine_periphery=ITERATIONS)
+    steps = list(rec.iter_reconstruct(np.stack([frame, frame])))
+    assert [s.refining for s in steps].count(True) == 2
+    assert steps[-1] == FrameProgress(1, 2, len(rec.grid), len(rec.grid), refining=True)
+    calls = []
+    rec.refinement = lambda *args: calls.append(args)
+    cancel = threading.Event()
+    run = rec.iter_reconstruct(frame, cancel=cancel)
+    while not next(run).refining:
+        pass
+    cancel.set()  # while the consumer handles the announcement
+    with pytest.raises(Cancelled):
+        next(run)
+    assert calls == []
 
 
 @pytest.mark.parametrize("value", [-1, 2.5, True, None])

@@ -128,7 +128,8 @@ class ReconstructWidget(Container):
     """Reconstruct a raw CM² frame or stack with any method, or compare two methods.
 
     *Reconstruct* runs the chosen method in a worker thread (progress below the button;
-    *Cancel* stops within one batch of tiles, or after the current frame for the other
+    *Cancel* stops within one batch of tiles or before a frame's periphery refinement
+    (the status line says when one runs), or after the current frame for the other
     methods) and adds ``"reconstruction"`` (``(S, S)`` or ``(T, S, S)``) and, if asked,
     ``"demixed views"`` (``(9, S, S)`` or ``(9, T, S, S)``, axis ``lens`` first), placed
     over the raw frame. A stack runs from the current frame to the end, then backwards,
@@ -405,8 +406,10 @@ class ReconstructWidget(Container):
         where = f"frame {done + 1} of {state['count']}" if state["count"] > 1 else "frame"
         if isinstance(item, FrameProgress):
             fraction = item.tiles_done / item.tiles_total if item.tiles_total else 0.0
-            tiled = job.method == "svcode"
+            tiled = job.method == "svcode" and not item.refining
             tiles = f", tiles {item.tiles_done}/{item.tiles_total}" if tiled else " running…"
+            if item.refining:
+                tiles = ", refining the periphery…"
             self._set_progress(state["job"], done, fraction, f"{title}: {where}{tiles}",
                                force=False, busy=not tiled)
             return

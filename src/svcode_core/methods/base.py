@@ -130,12 +130,15 @@ def check_frame_shape(shape: tuple[int, ...], system: SystemConfig) -> None:
 
 @dataclass(frozen=True)
 class FrameProgress:
-    """Progress of a reconstruction: frame ``frame`` of ``frames``, tiles of that frame."""
+    """Progress of a reconstruction: frame ``frame`` of ``frames``, tiles of that frame;
+    ``refining`` when the frame's tiles are done and its periphery refinement starts
+    (SV-CoDe with ``refine_periphery``)."""
 
     frame: int
     frames: int
     tiles_done: int
     tiles_total: int
+    refining: bool = False
 
 
 @dataclass

@@ -88,7 +88,6 @@ class PeripheryRefinement:
         if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
             raise ValueError(f"refinement iterations must be a positive integer, "
                              f"got {iterations!r}")  # fmt: skip
-        self.iterations = iterations
         self.solver = BaselineReconstructor("admm", system, device=str(device),
                                             rank=REFINE_RANK, iterations=iterations,
                                             tolerance=0.0)  # fmt: skip

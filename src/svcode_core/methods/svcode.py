@@ -49,6 +49,7 @@ from .frames import finite_frame
 from .periphery import PeripheryRefinement
 from .tiling import (
     DEFAULT_SKIP_FACTOR,
+    Cancelled,
     TileGrid,
     TileProgress,
     iter_tiled,
@@ -330,7 +331,8 @@ class Reconstructor(BaseReconstructor):
         return_views: bool = False,
         cancel: threading.Event | None = None,
     ) -> Generator[FrameProgress, None, ReconstructionResult]:
-        """Generator form of :meth:`reconstruct`: yields progress after every batch of tiles.
+        """Generator form of :meth:`reconstruct`: yields progress after every batch of tiles
+        and, with the periphery refinement, once more before it (``refining``).
 
         Stop it with ``.close()`` or by setting ``cancel`` (then
         :class:`~svcode_core.methods.tiling.Cancelled` is raised); the result is the generator's
@@ -364,6 +366,9 @@ class Reconstructor(BaseReconstructor):
             timings["blend"] += time.perf_counter() - start - output.model_seconds
             recon[index] = output.reconstruction
             if self.refinement is not None:
+                yield FrameProgress(index, count, output.tiles_run, output.tiles_run, True)
+                if cancel is not None and cancel.is_set():
+                    raise Cancelled("reconstruction cancelled")
                 start = time.perf_counter()
                 recon[index] = self.refinement(stack[index], recon[index], index)
                 timings["refine"] += time.perf_counter() - start
