@@ -7,6 +7,7 @@ from svcode_core.physics.geometry import (
     context_shifts,
     context_views,
     extract_sub_views,
+    field_radius,
     lens_pitch,
     normalized_coordinates,
     pad_sensor_frame,
@@ -23,6 +24,17 @@ def test_normalized_coordinates_edges_exact():
     step = 2.0 / 383
     np.testing.assert_allclose(np.diff(tail.numpy()), step, rtol=1e-12)
     assert tail[-1].item() > 1.0  # padding continues the line
+
+
+def test_field_radius_from_the_pixel_indices():
+    size = 7
+    rows, cols = np.indices((size, size))
+    centre = (size - 1) / 2
+    expected = np.sqrt((rows - centre) ** 2 + (cols - centre) ** 2) / centre
+    radius = field_radius(size)
+    assert radius.dtype == np.float64 and radius.shape == (size, size)
+    np.testing.assert_allclose(radius, expected, rtol=0, atol=4 * np.finfo(float).eps)
+    assert radius[3, 3] == 0.0 and radius[3, 0] == radius[0, 3] == 1.0
 
 
 def test_sub_view_centred_on_chief_ray(mini_system):

@@ -32,6 +32,7 @@ from svcode_core.evaluation.metrics import field_zones, psnr
 from svcode_core.methods.build import build_reconstructor
 from svcode_core.methods.periphery import REFINE_RANK, periphery_weight
 from svcode_core.physics.cm2 import CM2Operator
+from svcode_core.physics.geometry import field_radius
 from svcode_core.physics.psf_io import model_psfs
 from svcode_core.physics.simulate import Simulator
 from svcode_core.pretrained import require_bundled_weights
@@ -102,8 +103,7 @@ def main() -> None:
     found = reconstructions(data, system)
     size = system.sub_view_size
     zones = field_zones(size)
-    axis = np.linspace(-1.0, 1.0, size)
-    radius = np.hypot(axis[:, None], axis[None, :])
+    radius = field_radius(size)
     lines = ["# The periphery refinement chosen on validation frames", "",
              f"Made by `periphery_blend.py` (its docstring says how): {FRAMES} validation "
              "objects of `runs/data-v2`, each regime. Scene means, dB.", "",

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from skimage.metrics import structural_similarity
 
-from ..physics.geometry import normalized_coordinates
+from ..physics.geometry import field_radius
 
 __all__ = [
     "CENTRE_RADIUS",
@@ -56,8 +56,7 @@ def _check_pair(truth: np.ndarray, estimate: np.ndarray, data_range: float) -> t
 
 def field_zones(size: int) -> dict[str, np.ndarray]:
     """Boolean masks ``(S, S)`` of the ``"centre"`` and ``"ring"`` zones (module docstring)."""
-    axis = normalized_coordinates(size, dtype=torch.float64).numpy()
-    radius = np.hypot(axis[:, None], axis[None, :])
+    radius = field_radius(size)
     return {"centre": radius < CENTRE_RADIUS, "ring": radius > RING_RADIUS}
 
 

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from ..config import SystemConfig
-from ..physics.geometry import normalized_coordinates
+from ..physics.geometry import field_radius
 from .baselines import BaselineReconstructor
 
 __all__ = ["PERIPHERY_RAMP", "REFINE_ITERATIONS", "REFINE_RANK", "PeripheryRefinement",
@@ -55,9 +55,7 @@ def periphery_weight(size: int, ramp: tuple[float, float] = PERIPHERY_RAMP) -> n
     low, high = ramp
     if not 0 <= low < high:
         raise ValueError(f"ramp must rise: 0 <= start < end, got {ramp!r}")
-    axis = normalized_coordinates(size, dtype=torch.float64).numpy()
-    radius = np.hypot(axis[:, None], axis[None, :])
-    return np.clip((radius - low) / (high - low), 0.0, 1.0)
+    return np.clip((field_radius(size) - low) / (high - low), 0.0, 1.0)
 
 
 class PeripheryRefinement:

@@ -20,6 +20,7 @@ __all__ = [
     "context_views",
     "crop_to_sensor",
     "extract_sub_views",
+    "field_radius",
     "lens_pitch",
     "normalized_coordinates",
     "pad_sensor_frame",
@@ -92,6 +93,20 @@ def normalized_coordinates(
         length = size - start
     index = torch.arange(start, start + length, dtype=torch.float64, device=device)
     return (2.0 * index / (size - 1) - 1.0).to(dtype)
+
+
+def field_radius(size: int) -> np.ndarray:
+    """Normalised field radius ``(size, size)`` of every pixel of the object field: the
+    distance from its centre in :func:`normalized_coordinates` (1 at the middle of each
+    edge, √2 in the corners), float64.
+
+    Examples
+    --------
+    >>> field_radius(3).round(3).tolist()
+    [[1.414, 1.0, 1.414], [1.0, 0.0, 1.0], [1.414, 1.0, 1.414]]
+    """
+    axis = normalized_coordinates(size, dtype=torch.float64).numpy()
+    return np.hypot(axis[:, None], axis[None, :])
 
 
 def sub_view_origins(config: SystemConfig) -> np.ndarray:
