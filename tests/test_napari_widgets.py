@@ -587,7 +587,7 @@ def test_each_method_shows_only_its_options(make_napari_viewer):
     panel = widget._panel
     assert panel.method.choices == METHODS
     expected = {"svcode": {"model", "precision", "tile", "batch", "skip", "refine"},
-                "admm": {"precision", "rank", "iterations", "tv_weight"},
+                "admm": {"precision", "rank", "iterations", "tv_weight", "tv_auto"},
                 "wiener": {"precision", "rank", "balance", "boundary"},
                 "rl": {"precision", "rank", "iterations"},
                 "multiwiener": {"weights", "precision"}, "fouriernet": {"weights", "precision"}}
@@ -811,6 +811,12 @@ def test_cli_command_for_a_folder(tiny_system, make_napari_viewer):
     args = build_parser().parse_args(shlex.split(command)[1:])
     assert (args.method, args.iterations, args.system) == ("admm", 40, "cm2-mini")
     assert args.tv_weight == widget._panel.tv_weight.value
+    widget._panel.tv_auto.value = True  # λ from each frame's noise
+    assert widget._panel.options()["tv_weight"] == "auto"
+    assert not widget._panel.tv_weight.enabled
+    command = widget.copy_command().split("; do ", 1)[1].removesuffix("; done")
+    command = command.replace('"$f"', "in.tif").replace('"${f%.tif}.recon.tif"', "out.tif")
+    assert build_parser().parse_args(shlex.split(command)[1:]).tv_weight == "auto"
 
 
 # ---------------------------------------------------------------------- masks

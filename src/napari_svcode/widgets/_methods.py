@@ -125,6 +125,10 @@ class MethodPanel(Container):
         self.iterations = SpinBox(label="iterations", min=1, max=100_000, value=1)
         self.tv_weight = FloatSpinBox(label="TV weight λ", min=0.0, max=10.0, step=1e-5,
                                       tooltip="total-variation weight of LSV-ADMM")
+        self.tv_auto = CheckBox(text="λ from each frame's noise",
+                                tooltip="set λ from the frame's estimated noise and mean "
+                                        "level (better for dim, few-photon frames)")
+        self.tv_auto.changed.connect(lambda auto: setattr(self.tv_weight, "enabled", not auto))
         self.balance = FloatSpinBox(label="balance", min=0.0, max=10.0, step=1e-4,
                                     value=WIENER_BALANCE,
                                     tooltip="Laplacian regularisation weight of the Wiener "
@@ -135,8 +139,8 @@ class MethodPanel(Container):
                          "precision": self.precision, "tile": self.tile, "batch": self.batch,
                          "skip": self.skip, "refine": self.refine, "rank": self.rank,
                          "iterations": self.iterations,
-                         "tv_weight": self.tv_weight, "balance": self.balance,
-                         "boundary": self.boundary}
+                         "tv_weight": self.tv_weight, "tv_auto": self.tv_auto,
+                         "balance": self.balance, "boundary": self.boundary}
         super().__init__(widgets=[self.method, *self._widgets.values()], labels=True)
         self.margins = (0, 0, 0, 0)
         self._system = SystemConfig.preset("cm2-mini")
@@ -148,6 +152,7 @@ class MethodPanel(Container):
         shown = _OPTIONS[method]
         for name, widget in self._widgets.items():
             widget.visible = name in shown
+        self.tv_auto.visible = "tv_weight" in shown
         self.precision.choices = list(_PRECISIONS[method])
         self.precision.value = "fp32"
         self.set_system(self._system)
@@ -180,6 +185,8 @@ class MethodPanel(Container):
                      "balance": self.balance, "boundary": self.boundary}  # fmt: skip
             values.update({option: shown[option].value
                            for option in registry.method(method).options if option in shown})
+            if "tv_weight" in values and self.tv_auto.value:
+                values["tv_weight"] = "auto"
         return values
 
     def weights_path(self, system_name: str | None = None) -> Path | None:

@@ -121,6 +121,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
+def _tv_weight(text: str) -> float | str:
+    """``--tv-weight``: a number, or ``auto``."""
+    if text == "auto":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a number or 'auto', not {text!r}") from None
+
+
 def _system(args: argparse.Namespace):
     if args.system:
         return load_system(args.system)
@@ -174,7 +184,9 @@ def add_method_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"admm: at most this many (default {mini.iterations}); rl: (default {RL_ITERATIONS})",
     )
     group.add_argument(
-        "--tv-weight", type=float, help=f"admm: TV weight lambda (default {mini.tv_weight:g})"
+        "--tv-weight", type=_tv_weight, metavar="LAMBDA|auto",
+        help=f"admm: TV weight lambda (default {mini.tv_weight:g}); auto: from each frame's "
+        "noise and level (for noisy, few-photon frames)",
     )
     group.add_argument("--rho", type=float, help=f"admm: starting penalty (default {mini.rho:g})")
     group.add_argument(

@@ -15,7 +15,9 @@ row reports the scene-mean PSNR, SSIM, centre and outer-ring PSNR
 
 Rows (per regime)
     * **LSV-ADMM**, ``K`` = 3: one run per scene, read out at 10, 20 and 50 iterations
-      (time = solver time up to that iteration); with ``--rank-sweep``, in the matched
+      (time = solver time up to that iteration), with the system's TV weight and (not with
+      ``--quick``) with each frame's own (``λ auto``,
+      :func:`~svcode_core.methods.baselines.admm.auto_tv_weight`); with ``--rank-sweep``, in the matched
       regime, also at 50 iterations with ``K`` = 1 and 6;
     * **Wiener** per view with balance 1e-3, 1e-2, 1e-1; **Richardson–Lucy** per view with
       10 and 30 iterations;
@@ -64,7 +66,7 @@ import torch
 from ..config import SystemConfig
 from ..methods import registry
 from ..methods.baselines import LsvAdmm
-from ..methods.baselines.admm import settings_for
+from ..methods.baselines.admm import auto_tv_weight, settings_for
 from ..methods.build import build_reconstructor
 from ..methods.model_file import read_model_metadata
 from ..methods.periphery import REFINE_ITERATIONS
@@ -204,19 +206,24 @@ def admm_rows(
     checkpoints: tuple[int, ...],
     label: str,
     setup_seconds: float,
+    tv_weight: float | str | None = None,
 ) -> list[Row]:
-    """LSV-ADMM rows: one run per scene, read out at every checkpoint."""
+    """LSV-ADMM rows: one run per scene, read out at every checkpoint; ``tv_weight`` the
+    system's setting by default, ``"auto"`` for each scene's own (:func:`auto_tv_weight`)."""
     settings = settings_for(operator.system)
+    tv_weight = settings.tv_weight if tv_weight is None else tv_weight
+    auto = tv_weight == "auto"
     start = time.perf_counter()
     solver = LsvAdmm(
-        operator, settings.tv_weight, settings.rho, settings.cg_iterations, settings.adaptive_rho
+        operator, 0.0 if auto else tv_weight, settings.rho, settings.cg_iterations,
+        settings.adaptive_rho,
     )
     setup_seconds += time.perf_counter() - start
     rows = {
         n: Row(
             registry.method("admm").label,
-            f"{label}, {n} it",
-            {"rank": operator.rank, "iterations": n, "tv_weight": settings.tv_weight},
+            f"{label}, {n} it" + (", λ auto" if auto else ""),
+            {"rank": operator.rank, "iterations": n, "tv_weight": tv_weight},
             setup_seconds=setup_seconds,
         )
         for n in checkpoints
@@ -225,6 +232,8 @@ def admm_rows(
         for scene in scenes:
             frame = _padded(scene, operator)
             record = CheckpointRecorder(set(rows))
+            if auto:  # timed with the solve
+                solver.tv_weight = auto_tv_weight(scene.raw)
             solver.solve(frame, iterations=max(checkpoints), tolerance=0.0, callback=record)
             for n, (seconds, estimate) in record.snapshots.items():
                 _score(rows[n], scene, estimate, seconds)
@@ -448,6 +457,8 @@ def run_benchmark(
         if "admm" in methods:
             checkpoints = QUICK_ADMM_CHECKPOINTS if quick else ADMM_CHECKPOINTS
             new += admm_rows(op, scenes, checkpoints, f"K={ADMM_RANK}", setup)
+            if not quick:
+                new += admm_rows(op, scenes, checkpoints, f"K={ADMM_RANK}", setup, "auto")
             if regime == "matched" and rank_sweep:
                 for rank in RANK_SWEEP:
                     sweep, sweep_setup = operator(rank)
