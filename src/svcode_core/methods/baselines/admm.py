@@ -60,11 +60,12 @@ the prior's ``β`` is the inverse of the object's scale. The frame gives both: `
 ``m``, so ``λ = γ σ̂² / m``; for shot noise ``σ̂² / m`` is the noise gain (the inverse
 photon count per unit intensity), and ``λ`` scales with the frame as the object does.
 ``γ`` = :data:`AUTO_TV_GAIN` (2) was chosen on 8 validation objects of the training data
-imaged at 200 photons a pixel (the ``low-light`` departures), with default noise and by
-the ``realistic`` instrument, comparing ``λ`` ∈ {1e-4, 1e-3, 3e-3, 1e-2} after 50
-iterations: the best ``λ`` was near ``2 σ̂² / m`` at low light (1e-2 in 6 of 8 frames,
-+1.3 dB over 1e-4), 1e-3–3e-3 for the realistic frames, and anything up to 1e-3 at the
-default noise, where the four agree within 0.2 dB.
+imaged at 200 photons a pixel (the ``low-light`` departures), with the default noise and
+by the ``realistic`` instrument, comparing ``λ`` ∈ {1e-4, 1e-3, 3e-3, 1e-2} after 50
+iterations (``bench/admm_tv_weight.py``): at low light the best ``λ`` over ``σ̂² / m`` has
+median 2.0 (1e-2 best in 6 of 8 frames, +1.3 dB over 1e-4 on the mean); for the realistic
+frames 1e-3 to 3e-3 are best (+0.25 dB), ``γ`` = 2 giving about 2e-3; at the default
+noise ``γ`` = 2 gives about 1.6e-4, where 1e-4 to 1e-3 agree within 0.1 dB (1e-2 loses 0.4).
 """
 
 from __future__ import annotations
