@@ -17,8 +17,8 @@ Rows (per regime)
     * **LSV-ADMM**, ``K`` = 3: one run per scene, read out at 10, 20 and 50 iterations
       (time = solver time up to that iteration), with the system's TV weight and (not with
       ``--quick``) with each frame's own (``λ auto``,
-      :func:`~svcode_core.methods.baselines.admm.auto_tv_weight`); with ``--rank-sweep``, in the matched
-      regime, also at 50 iterations with ``K`` = 1 and 6;
+      :func:`~svcode_core.methods.baselines.admm.auto_tv_weight`); with ``--rank-sweep``,
+      in the matched regime, also at 50 iterations with ``K`` = 1 and 6;
     * **Wiener** per view with balance 1e-3, 1e-2, 1e-1; **Richardson–Lucy** per view with
       10 and 30 iterations;
     * **SV-CoDe** (only with ``--weights`` or a bundled model): the planned tiling

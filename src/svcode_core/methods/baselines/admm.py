@@ -53,8 +53,8 @@ every PSF is normalised to the lens's transmission), not separately tuned.
 The TV weight from the frame (``tv_weight="auto"``, :func:`auto_tv_weight`)
 ----------------------------------------------------------------------------
 A fixed ``λ`` suits one noise level only: at 200 photons a pixel it leaves LSV-ADMM
-fitting the noise (its PSNR falls after 20 iterations in the benchmark). With Gaussian noise of
-variance ``σ²`` the TV-regularised maximum a posteriori estimate has ``λ = β σ²``, where
+fitting the noise (its PSNR falls after 20 iterations in the benchmark). With Gaussian
+noise of variance ``σ²`` the TV-regularised maximum a posteriori estimate has ``λ = β σ²``, where
 the prior's ``β`` is the inverse of the object's scale. The frame gives both: ``σ̂`` by
 :func:`~svcode_core.physics.noise.estimate_noise_std` and the scale by the frame's mean
 ``m``, so ``λ = γ σ̂² / m``; for shot noise ``σ̂² / m`` is the noise gain (the inverse
