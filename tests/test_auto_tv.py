@@ -70,13 +70,39 @@ def test_the_reconstructor_solves_with_the_frames_weight(tiny_system, dim_frame)
                                 tolerance=0.0)  # fmt: skip
     auto = rec.reconstruct(frame).reconstruction
     defaults = settings_for(tiny_system)
-    solver = LsvAdmm(rec.operator, auto_tv_weight(frame), defaults.rho, defaults.cg_iterations,
-                     defaults.adaptive_rho, defaults.check_every)  # fmt: skip
     padded = pad_sensor_frame(torch.as_tensor(frame, dtype=rec.operator.lenses.dtype),
                               tiny_system)  # fmt: skip
-    direct = solver.solve(padded, None, 5, tolerance=0.0).x.float().numpy()
-    np.testing.assert_array_equal(auto, direct)
-    assert auto_tv_weight(frame) > 10 * defaults.tv_weight  # the weight is not the default
+
+    def solve(tv_weight):
+        solver = LsvAdmm(rec.operator, tv_weight, defaults.rho, defaults.cg_iterations,
+                         defaults.adaptive_rho, defaults.check_every)  # fmt: skip
+        return solver.solve(padded, None, 5, tolerance=0.0)
+
+    direct = solve("auto")
+    np.testing.assert_array_equal(auto, direct.x.float().numpy())
+    # the frame's weight, from the operator-precision frame; the fixed one gives the same
+    eps = torch.finfo(rec.operator.lenses.dtype).eps
+    assert direct.tv_weight == pytest.approx(auto_tv_weight(frame), rel=100 * eps)
+    assert direct.tv_weight > 10 * defaults.tv_weight  # the weight is not the default
+    fixed = solve(direct.tv_weight)
+    np.testing.assert_array_equal(fixed.x.numpy(), direct.x.numpy())
+    assert fixed.objective == direct.objective
+
+
+def test_the_solver_takes_the_weight_from_the_sensor_part_only(tiny_system, dim_frame):
+    _, frame = dim_frame
+    operator = CM2Operator.from_system(tiny_system)
+    solver = LsvAdmm(operator, "auto")
+    padded = pad_sensor_frame(torch.as_tensor(frame, dtype=operator.lenses.dtype), tiny_system)
+    sensor = pad_sensor_frame(torch.ones(tiny_system.sensor_shape, dtype=padded.dtype),
+                              tiny_system)  # fmt: skip
+    assert (sensor == 0).any()
+    outside = torch.where(sensor == 0, 5.0, padded)  # ignored by the solver, λ included
+    first = solver.solve(padded, iterations=2)
+    second = solver.solve(outside, iterations=2)
+    assert first.tv_weight == second.tv_weight
+    x = first.x
+    assert solver.objective(x, padded) == solver.objective(x, outside)
 
 
 def test_at_few_photons_the_frames_weight_beats_the_fixed_default(tiny_system, dim_frame):

@@ -66,7 +66,7 @@ import torch
 from ..config import SystemConfig
 from ..methods import registry
 from ..methods.baselines import LsvAdmm
-from ..methods.baselines.admm import auto_tv_weight, settings_for
+from ..methods.baselines.admm import settings_for
 from ..methods.build import build_reconstructor
 from ..methods.model_file import read_model_metadata
 from ..methods.periphery import REFINE_ITERATIONS
@@ -209,14 +209,14 @@ def admm_rows(
     tv_weight: float | str | None = None,
 ) -> list[Row]:
     """LSV-ADMM rows: one run per scene, read out at every checkpoint; ``tv_weight`` the
-    system's setting by default, ``"auto"`` for each scene's own (:func:`auto_tv_weight`)."""
+    system's setting by default, ``"auto"`` for each scene's own
+    (:func:`~svcode_core.methods.baselines.admm.auto_tv_weight`)."""
     settings = settings_for(operator.system)
     tv_weight = settings.tv_weight if tv_weight is None else tv_weight
     auto = tv_weight == "auto"
     start = time.perf_counter()
     solver = LsvAdmm(
-        operator, 0.0 if auto else tv_weight, settings.rho, settings.cg_iterations,
-        settings.adaptive_rho,
+        operator, tv_weight, settings.rho, settings.cg_iterations, settings.adaptive_rho
     )
     setup_seconds += time.perf_counter() - start
     rows = {
@@ -232,8 +232,6 @@ def admm_rows(
         for scene in scenes:
             frame = _padded(scene, operator)
             record = CheckpointRecorder(set(rows))
-            if auto:  # timed with the solve
-                solver.tv_weight = auto_tv_weight(scene.raw)
             solver.solve(frame, iterations=max(checkpoints), tolerance=0.0, callback=record)
             for n, (seconds, estimate) in record.snapshots.items():
                 _score(rows[n], scene, estimate, seconds)

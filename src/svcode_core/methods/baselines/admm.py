@@ -158,6 +158,8 @@ class AdmmResult:
         Iterations run.
     converged : bool
         Whether the tolerance was met (else the iteration count ran out).
+    tv_weight : float
+        The ``λ`` solved with (the frame's own with ``tv_weight="auto"``).
     """
 
     x: torch.Tensor
@@ -167,6 +169,7 @@ class AdmmResult:
     rho: list[float] = field(default_factory=list)
     iterations: int = 0
     converged: bool = False
+    tv_weight: float = 0.0
 
 
 def gradient(x: torch.Tensor) -> torch.Tensor:
@@ -233,8 +236,9 @@ class LsvAdmm:
     ----------
     operator : CM2Operator
         Forward model; the solver runs in its dtype (float32/float64) and on its device.
-    tv_weight : float
-        ``λ`` (≥ 0; 0 gives non-negative least squares).
+    tv_weight : float or "auto"
+        ``λ`` (≥ 0; 0 gives non-negative least squares), or ``"auto"`` for each frame's own
+        (:func:`auto_tv_weight` of the frame's sensor part, module docstring).
     rho : float
         Starting penalty ``ρ`` (> 0).
     cg_iterations : int
@@ -253,12 +257,15 @@ class LsvAdmm:
     >>> result = LsvAdmm(op, tv_weight=1e-4).solve(frame, iterations=10)
     >>> tuple(result.x.shape), bool(result.x.min() >= 0)
     ((48, 48), True)
+    >>> result = LsvAdmm(op, tv_weight="auto").solve(frame, iterations=10)
+    >>> result.tv_weight > 0  # this frame's λ
+    True
     """
 
     def __init__(
         self,
         operator: CM2Operator,
-        tv_weight: float,
+        tv_weight: float | str,
         rho: float = 0.1,
         cg_iterations: int = 1,
         adaptive_rho: bool = True,
@@ -266,7 +273,10 @@ class LsvAdmm:
     ) -> None:
         if not isinstance(operator, CM2Operator):
             raise TypeError(f"operator must be a CM2Operator, got {type(operator).__name__}")
-        for name, value, low in (("tv_weight", tv_weight, 0.0), ("rho", rho, None)):
+        if isinstance(tv_weight, str) and tv_weight != "auto":
+            raise ValueError(f"tv_weight must be a number >= 0 or 'auto', got {tv_weight!r}")
+        fixed_weight = 0.0 if tv_weight == "auto" else tv_weight
+        for name, value, low in (("tv_weight", fixed_weight, 0.0), ("rho", rho, None)):
             ok = isinstance(value, (int, float)) and math.isfinite(value)
             if not ok or (value < 0 if low == 0.0 else value <= 0):
                 bound = ">= 0" if low == 0.0 else "> 0"
@@ -275,7 +285,7 @@ class LsvAdmm:
             if not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
         self.operator = operator
-        self.tv_weight = float(tv_weight)
+        self.tv_weight = tv_weight if tv_weight == "auto" else float(tv_weight)
         self.rho = float(rho)
         self.cg_iterations = cg_iterations
         self.adaptive_rho = adaptive_rho
@@ -312,10 +322,18 @@ class LsvAdmm:
         frame = frame.to(device=device, dtype=dtype)
         return pad_sensor_frame(crop_to_sensor(frame, system), system)
 
+    def _tv_weight(self, frame: torch.Tensor) -> float:
+        """``λ`` for a checked padded frame: the fixed one, or the frame's own."""
+        if self.tv_weight != "auto":
+            return self.tv_weight
+        sensor = crop_to_sensor(frame, self.operator.system)
+        return auto_tv_weight(sensor.detach().to("cpu", torch.float64).numpy())
+
     def objective(self, x: torch.Tensor, frame: torch.Tensor) -> float:
         """``½‖A x − y‖² + λ TV(x)`` for an object ``x`` and a padded frame ``y``."""
-        residual = self.operator.forward(x) - self._frame(frame)
-        return 0.5 * _dot(residual, residual) + self.tv_weight * float(total_variation(x))
+        y = self._frame(frame)
+        residual = self.operator.forward(x) - y
+        return 0.5 * _dot(residual, residual) + self._tv_weight(y) * float(total_variation(x))
 
     def solve(
         self,
@@ -355,6 +373,7 @@ class LsvAdmm:
             raise ValueError(f"tolerance must be a finite number >= 0, got {tolerance!r}")
         op, c_tv = self.operator, self.weights[1]
         y = self._frame(frame)
+        tv_weight = self._tv_weight(y)
         size = op.system.sub_view_size
         if x0 is None:
             x = y.new_zeros(size, size)
@@ -367,7 +386,7 @@ class LsvAdmm:
         z = [ax.clone(), gradient(x), x.clamp(min=0)]
         d = [torch.zeros_like(v) for v in z]
         rho = self.rho
-        result = AdmmResult(x=z[2])
+        result = AdmmResult(x=z[2], tv_weight=tv_weight)
         for iteration in range(1, iterations + 1):
             # x-update: warm-started CG on the normal equations
             r = self._adjoint([z[0] - d[0] - ax, z[1] - d[1] - gradient(x), z[2] - d[2] - x])
@@ -386,13 +405,13 @@ class LsvAdmm:
             previous = z
             z = [
                 (y + rho * (ax + d[0])) / (1.0 + rho),
-                _soft_threshold(grad + d[1], self.tv_weight / (rho * c_tv)),
+                _soft_threshold(grad + d[1], tv_weight / (rho * c_tv)),
                 (x + d[2]).clamp(min=0),
             ]
             image = [ax, grad, x]
             d = [di + ki - zi for di, ki, zi in zip(d, image, z, strict=True)]
             misfit = ax - y
-            value = 0.5 * _dot(misfit, misfit) + self.tv_weight * float(_magnitude(grad).sum())
+            value = 0.5 * _dot(misfit, misfit) + tv_weight * float(_magnitude(grad).sum())
             if not math.isfinite(value):
                 raise FloatingPointError(
                     f"LSV-ADMM diverged at iteration {iteration} (objective {value}); "

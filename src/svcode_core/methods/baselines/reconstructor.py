@@ -28,7 +28,7 @@ from .. import registry
 from ..base import FrameByFrame, check_frame_shape, precision_dtype, resolve_device
 from ..frames import finite_frame
 from ..registry import MODEL_BASED_METHODS
-from .admm import LsvAdmm, auto_tv_weight, settings_for
+from .admm import LsvAdmm, settings_for
 from .deconv import ShiftInvariantDeconvolution
 
 __all__ = ["BaselineReconstructor", "build_operator", "reconstruct_with_baseline"]
@@ -121,13 +121,9 @@ class BaselineReconstructor(FrameByFrame):
             defaults = settings_for(system)
             self.iterations = options.get("iterations", defaults.iterations)
             self.tolerance = options.get("tolerance", defaults.tolerance)
-            tv_weight = options.get("tv_weight", defaults.tv_weight)
-            self.auto_tv = isinstance(tv_weight, str)
-            if self.auto_tv and tv_weight != "auto":
-                raise ValueError(f"tv_weight must be a number >= 0 or 'auto', got {tv_weight!r}")
             self.solver = LsvAdmm(
                 operator,
-                tv_weight=0.0 if self.auto_tv else tv_weight,
+                tv_weight=options.get("tv_weight", defaults.tv_weight),
                 rho=options.get("rho", defaults.rho),
                 cg_iterations=options.get("cg_iterations", defaults.cg_iterations),
                 adaptive_rho=defaults.adaptive_rho,
@@ -155,8 +151,6 @@ class BaselineReconstructor(FrameByFrame):
         check_frame_shape(np.shape(frame), self.system)
         padded = self._padded(frame, index)
         if self.method == "admm":
-            if self.auto_tv:  # the solver is this reconstructor's own, its frames in turn
-                self.solver.tv_weight = auto_tv_weight(finite_frame(frame, index, np.float64))
             return self.solver.solve(padded, x0, self.iterations, self.tolerance).x
         return self.solver(padded)
 
