@@ -262,6 +262,22 @@ def test_frames_a_little_above_full_scale_run_with_a_warning(scene, tiny_system,
     assert status == 0 and err == ""
 
 
+@pytest.mark.parametrize("value", [1e-30, 1e-12])
+def test_frames_far_below_one_count_are_refused_and_rescaled(scene, tiny_system, capsys, value):
+    frame = read_tiff(scene / "meas.tif")[0]
+    write_tiff(scene / "tiny.tif", (frame * value).astype(np.float32), tiny_system)
+    status, err = wiener(capsys, scene / "tiny.tif", scene / "out.tif")
+    assert status == 2
+    one_error_line(err, "below one count of a 32-bit sensor", "--input-scale")
+    assert not (scene / "out.tif").exists()
+    status, err = wiener(capsys, scene / "tiny.tif", scene / "out.tif", "--input-scale",
+                         repr(value))  # fmt: skip
+    assert status == 0
+    expected = reconstruct_with_baseline("wiener", frame, tiny_system)
+    result = read_tiff(scene / "out.tif")[0]
+    assert np.abs(result - expected).max() <= 1e-5 * np.abs(expected).max()  # float32 rounding
+
+
 def test_all_negative_frame_is_refused(scene, tiny_system, capsys):
     write_tiff(scene / "neg.tif", np.full(tiny_system.sensor_shape, -0.2, np.float32),
                tiny_system)

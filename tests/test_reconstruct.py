@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import warnings
 
 import numpy as np
 import pytest
@@ -106,6 +107,19 @@ def test_dark_frame_skips_every_tile_and_gives_background(tiny_system):
     result = rec(np.zeros(tiny_system.sensor_shape, np.float32))
     assert result.tiles_skipped == len(rec.grid) and result.tiles_run == 0
     assert np.all(result.reconstruction == 0)
+
+
+def test_a_frame_too_dim_for_every_tile_is_zero_with_a_warning(tiny_system):
+    rec = Reconstructor(ConvModel(), tiny_system)
+    dim = _frame(tiny_system) * (0.5 * rec.skip_threshold / _frame(tiny_system).max())
+    with pytest.warns(UserWarning, match="below the skipping threshold in every tile") as seen:
+        result = rec(dim)
+    assert result.tiles_run == 0 and np.all(result.reconstruction == 0)
+    assert "--input-scale" in str(seen[0].message) and "--no-skip" in str(seen[0].message)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a zero frame is zero without a word
+        assert rec(dim * 0).tiles_run == 0
+    assert Reconstructor(ConvModel(), tiny_system, skip_empty=False)(dim).reconstruction.any()
 
 
 def test_negative_values_are_clipped_to_zero(tiny_system):

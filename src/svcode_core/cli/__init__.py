@@ -78,8 +78,15 @@ def describe_error(err: BaseException) -> str:
 
 
 def _one_line_warnings(command: str) -> Callable[..., None]:
+    """A ``warnings.showwarning`` that prints each distinct warning once, on one line (a
+    frame checked twice, or every frame of a stack, says the same thing only once)."""
+    shown: set[str] = set()
+
     def show(message, category, filename, lineno, file=None, line=None) -> None:
-        print(f"svcode {command}: warning: {message}", file=file or sys.stderr)
+        text = f"svcode {command}: warning: {message}"
+        if text not in shown:
+            shown.add(text)
+            print(text, file=file or sys.stderr)
 
     return show
 

@@ -23,7 +23,10 @@ Range
     NaN or Inf, a frame with no positive value (all negative: a sign or dark-frame error;
     after the usual clipping at 0 nothing would be left) and a frame reaching more than
     :data:`FAR_ABOVE` (10× the full scale: raw counts or another unit) are refused with a
-    :class:`ValueError` naming the frame and the fix. Frames between :data:`WARN_ABOVE` (2×)
+    :class:`ValueError` naming the frame and the fix, and so is a frame whose brightest value
+    is positive but below :data:`FAR_BELOW` (one count of a 32-bit sensor: no sensor
+    reading is that small in normalised units, and single-precision sums of squares of
+    such values underflow). Frames between :data:`WARN_ABOVE` (2×)
     and that limit are reconstructed as they are, with a warning (a scale off by a few bits?).
     Noiseless simulated frames can exceed the full scale a little where views overlap (the
     sensor model clips real readings), so up to 2× passes silently. An all-zero frame is
@@ -39,6 +42,7 @@ import numpy as np
 
 __all__ = [
     "FAR_ABOVE",
+    "FAR_BELOW",
     "FULL_SCALE",
     "WARN_ABOVE",
     "as_frame_stack",
@@ -50,6 +54,8 @@ FULL_SCALE = 1.0
 """Normalised value of the sensor's full scale."""
 FAR_ABOVE = 10.0 * FULL_SCALE
 """Frames reaching beyond this are refused: they are not in normalised units."""
+FAR_BELOW = 2.0**-32 * FULL_SCALE
+"""Frames whose brightest value is positive but below this are refused: not normalised."""
 WARN_ABOVE = 2.0 * FULL_SCALE
 """Frames reaching beyond this (up to :data:`FAR_ABOVE`) are reconstructed with a warning."""
 _SCALE_HINT = (
@@ -119,6 +125,13 @@ def _check_range(values: np.ndarray, index: int) -> None:
             f"frame {index} reaches {top:.4g}, far above the sensor's full scale "
             f"{FULL_SCALE:g} (refused beyond {FAR_ABOVE:g}): it is not in normalised units; "
             + _SCALE_HINT
+        )
+    if 0 < top < FAR_BELOW:
+        raise ValueError(
+            f"frame {index} reaches only {top:.4g}, below one count of a 32-bit sensor "
+            f"({FAR_BELOW:.3g} of the full scale {FULL_SCALE:g}): it is not in normalised "
+            "units; pass the full scale in these units (svcode reconstruct --input-scale "
+            "VALUE) or rescale the frames to full scale 1.0"
         )
     if top <= 0 < -bottom:
         raise ValueError(

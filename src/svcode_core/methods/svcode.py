@@ -27,6 +27,7 @@ import functools
 import math
 import threading
 import time
+import warnings
 from collections.abc import Generator
 from pathlib import Path
 from typing import Any
@@ -324,6 +325,19 @@ class Reconstructor(BaseReconstructor):
         views = demixed.float().cpu().numpy() if want_views else None
         return views, recon.float().cpu().numpy()
 
+    def _warn_all_skipped(self) -> None:
+        """Say that a frame with light in it came out 0 because every tile was skipped (the
+        same text for every frame, so Python's filter shows it once)."""
+        warnings.warn(
+            "a frame below the skipping threshold in every tile "
+            f"({self.skip_threshold:.3g} of the full scale, above the sensor's noise) is "
+            "reconstructed as 0: if the frames are in other units, pass the sensor's "
+            "full-scale count (--input-scale); to run every tile anyway, --no-skip "
+            "(skip_empty=False)",
+            UserWarning,
+            stacklevel=3,
+        )
+
     # ---------------------------------------------------------------- running
     def iter_reconstruct(
         self,
@@ -356,6 +370,8 @@ class Reconstructor(BaseReconstructor):
             active = None
             if self.skip_empty:
                 active = tiles_with_signal(sub_views, self.grid, self.skip_threshold)
+                if not active.any() and sub_views.max() > 0:
+                    self._warn_all_skipped()
             timings["prepare"] += time.perf_counter() - start
             start = time.perf_counter()
             tiled = iter_tiled(
