@@ -25,16 +25,23 @@ def svcode_methods(system: SystemConfig, weights: list[Path], knob: str = "",
     """The bundled SV-CoDe model, then every file of ``weights``, built with ``options``.
 
     Labels are the model's family and file (the bundled one by its name, the others by
-    their path as given), then ``knob`` (what ``options`` set).
+    their path, relative to the working directory when inside it: the reports name no
+    machine's folders), then ``knob`` (what ``options`` set).
     """
     methods = []
     bundled = require_bundled_weights(system)
     for path in [bundled, *weights]:
         reconstructor = build_reconstructor("svcode", system, path, **options)
-        name = path.name if path == bundled else str(path)
+        name = path.name if path == bundled else _shown(path)
         methods.append((f"{model_label(path)}: {name}{knob}",
                         lambda raw, r=reconstructor: r.reconstruct(raw).reconstruction))
     return methods
+
+
+def _shown(path: Path) -> str:
+    """``path`` relative to the working directory when inside it, else as given."""
+    here, resolved = Path.cwd().resolve(), path.resolve()
+    return str(resolved.relative_to(here) if resolved.is_relative_to(here) else path)
 
 
 def admm_method(system: SystemConfig, iterations: int) -> tuple[str, Reconstruct]:
