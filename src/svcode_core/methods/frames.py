@@ -26,8 +26,8 @@ Range
     :class:`ValueError` naming the frame and the fix, and so is a frame whose brightest value
     is positive but below :data:`FAR_BELOW` (one count of a 32-bit sensor: no sensor
     reading is that small in normalised units, and single-precision sums of squares of
-    such values underflow). Frames between :data:`WARN_ABOVE` (2×)
-    and that limit are reconstructed as they are, with a warning (a scale off by a few bits?).
+    such values underflow). Frames between :data:`WARN_ABOVE` (2×) and :data:`FAR_ABOVE`
+    are reconstructed as they are, with a warning (a scale off by a few bits?).
     Noiseless simulated frames can exceed the full scale a little where views overlap (the
     sensor model clips real readings), so up to 2× passes silently. An all-zero frame is
     valid (its reconstruction is zero).
