@@ -254,6 +254,7 @@ def test_train_command_trains_a_baseline(tiny_data, tmp_path, capsys):
 @pytest.mark.parametrize("method", sorted(BUILDERS))
 def test_reconstructor_matches_the_model_and_refuses_bad_input(method, operator, tmp_path):
     from svcode_core.methods.build import MethodSpec
+    from svcode_core.methods.exposure import exposure_gain
     from svcode_core.methods.learned.reconstruct import LearnedReconstructor
     from svcode_core.physics.geometry import pad_sensor_frame
 
@@ -263,10 +264,16 @@ def test_reconstructor_matches_the_model_and_refuses_bad_input(method, operator,
     frames, _ = _scene(operator, batch=2)
     (top, left), (rows, cols) = system.padding, system.sensor_shape
     raw = frames[:, top : top + rows, left : left + cols].numpy()
-    rec = MethodSpec(method, system, str(path))()
+    rec = MethodSpec(method, system, str(path), {"normalise_exposure": False})()
     result = rec.reconstruct(raw)
     with torch.no_grad():
         expected = model(pad_sensor_frame(torch.from_numpy(raw), system))[:, 0].numpy()
+        # by default each frame is brought to the reference level and the output scaled back
+        gain = exposure_gain(raw[0])
+        normalised = model(pad_sensor_frame(torch.from_numpy(raw[:1] * gain), system))[0, 0]
+    np.testing.assert_allclose(MethodSpec(method, system, str(path))().reconstruct(
+        raw[0]).reconstruction, normalised.numpy() / gain, rtol=1e-5,
+        atol=64 * np.finfo(np.float32).eps * float(np.abs(normalised).max()) / gain)
     # frame by frame against a batch of two: float32 FFTs and convolutions sum in another
     # order, so agreement is to a few float32 ulps of the image scale, not bit for bit
     atol = 64 * np.finfo(np.float32).eps * float(np.abs(expected).max())

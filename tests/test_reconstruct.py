@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import threading
-import warnings
 
 import numpy as np
 import pytest
@@ -73,7 +72,8 @@ def test_identity_model_returns_the_sub_views(tiny_system):
 
 def test_origins_reach_the_model_as_global_coordinates(tiny_system):
     result = Reconstructor(
-        CoordinateModel(), tiny_system, tile_size=16, stride=6, skip_empty=False
+        CoordinateModel(), tiny_system, tile_size=16, stride=6, skip_empty=False,
+        normalise_exposure=False,  # the stand-in's output does not scale with its input
     )(_frame(tiny_system))
     rows, cols = np.indices(result.reconstruction.shape) / (tiny_system.sub_view_size - 1)
     np.testing.assert_allclose(result.reconstruction, rows + 10 * cols, rtol=1e-6)
@@ -116,8 +116,7 @@ def test_a_frame_too_dim_for_every_tile_is_zero_with_a_warning(tiny_system):
         result = rec(dim)
     assert result.tiles_run == 0 and np.all(result.reconstruction == 0)
     assert "--input-scale" in str(seen[0].message) and "--no-skip" in str(seen[0].message)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")  # a zero frame is zero without a word
+    with pytest.warns(UserWarning, match="blank frames"):  # not "too dim"
         assert rec(dim * 0).tiles_run == 0
     assert Reconstructor(ConvModel(), tiny_system, skip_empty=False)(dim).reconstruction.any()
 

@@ -34,7 +34,7 @@ import torch
 
 from ..config import SystemConfig
 from . import registry
-from .frames import as_frame_stack
+from .frames import as_frame_stack, finite_frame
 from .tiling import Cancelled, exhaust
 
 __all__ = [
@@ -158,6 +158,9 @@ class ReconstructionResult:
         0 without it).
     tiles_total, tiles_run, tiles_skipped : int
         Summed over frames; 0 for the methods that do not tile.
+    exposure_gains : numpy.ndarray or None
+        SV-CoDe: the factor each frame was multiplied by before the network (its output
+        divided by it, :mod:`~svcode_core.methods.exposure`); ``None`` for the others.
     """
 
     reconstruction: np.ndarray
@@ -166,6 +169,7 @@ class ReconstructionResult:
     tiles_total: int = 0
     tiles_run: int = 0
     tiles_skipped: int = 0
+    exposure_gains: np.ndarray | None = None
 
 
 class BaseReconstructor(ABC):
@@ -262,7 +266,13 @@ class FrameByFrame(BaseReconstructor):
             if cancel is not None and cancel.is_set():
                 raise Cancelled("reconstruction cancelled")
             yield FrameProgress(index, len(stack), 0, 1)
-            recon, view = self.reconstruct_frame(frame, index, return_views)
+            if np.any(frame):
+                recon, view = self.reconstruct_frame(frame, index, return_views)
+            else:  # a blank frame is 0 by every method (no warm start from the last frame)
+                finite_frame(frame, index)  # says so
+                size = self.system.sub_view_size
+                recon = np.zeros((size, size), np.float32)
+                view = np.zeros((9, size, size), np.float32) if return_views else None
             recons.append(recon)
             views.append(view)
         recon = np.stack(recons)

@@ -29,8 +29,9 @@ Range
     such values underflow). Frames between :data:`WARN_ABOVE` (2×) and :data:`FAR_ABOVE`
     are reconstructed as they are, with a warning (a scale off by a few bits?).
     Noiseless simulated frames can exceed the full scale a little where views overlap (the
-    sensor model clips real readings), so up to 2× passes silently. An all-zero frame is
-    valid (its reconstruction is zero).
+    sensor model clips real readings), so up to 2× passes silently. An all-zero frame (a
+    closed shutter, a dropped frame) is reconstructed as zero with a warning, so a long
+    recording with a blank frame in it runs to its end.
 """
 
 from __future__ import annotations
@@ -132,6 +133,13 @@ def _check_range(values: np.ndarray, index: int) -> None:
             f"({FAR_BELOW:.3g} of the full scale {FULL_SCALE:g}): it is not in normalised "
             "units; pass the full scale in these units (svcode reconstruct --input-scale "
             "VALUE) or rescale the frames to full scale 1.0"
+        )
+    if top == 0 == bottom:
+        warnings.warn(
+            "blank frames (every value 0: a closed shutter or a dropped frame?) are "
+            "reconstructed as 0",
+            UserWarning,
+            stacklevel=2,
         )
     if top <= 0 < -bottom:
         raise ValueError(

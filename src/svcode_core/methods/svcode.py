@@ -12,6 +12,13 @@ Input handling
     subtraction) are **clipped at 0** before the model: the training measurements are
     non-negative sensor readings, so the model has never seen negative input.
 
+Exposure
+    Each frame is brought to the level the model was trained at and the reconstruction
+    (and the demixed views) scaled back (:mod:`~svcode_core.methods.exposure`): a frame
+    read with another gain gives the same image at its own scale. The gains are in
+    :attr:`ReconstructionResult.exposure_gains`. ``normalise_exposure=False`` feeds the
+    frames as they are.
+
 Devices and precision
     ``device`` is ``"cpu"``, ``"cuda"`` / ``"cuda:N"`` or ``"mps"``; an unavailable one is a
     clear error. ``precision`` ``"fp32"`` runs as is; ``"bf16"`` and ``"fp16"`` run under
@@ -46,6 +53,7 @@ from .base import (
     precision_dtype,
     resolve_device,
 )
+from .exposure import exposure_gain
 from .frames import finite_frame
 from .periphery import PeripheryRefinement
 from .tiling import (
@@ -178,6 +186,9 @@ class Reconstructor(BaseReconstructor):
         reconstruction (:class:`~svcode_core.methods.periphery.PeripheryRefinement`); 0
         (default): none. 10 raised the bundled ``cm2-mini`` model's held-out scores in
         every regime, the outer ring most, for 2–3× the time of a frame.
+    normalise_exposure : bool
+        Bring each frame to the model's training level and scale the output back
+        (default); ``False`` runs the frames as they are.
 
     Examples
     --------
@@ -210,6 +221,7 @@ class Reconstructor(BaseReconstructor):
         tile_memory_bytes: int = DEFAULT_TILE_MEMORY_BYTES,
         pool_window: int | None = None,
         refine_periphery: int = 0,
+        normalise_exposure: bool = True,
     ) -> None:
         if not isinstance(system, SystemConfig):
             raise TypeError(f"system must be a SystemConfig, got {type(system).__name__}")
@@ -257,6 +269,7 @@ class Reconstructor(BaseReconstructor):
                 or refine_periphery < 0):
             raise ValueError(f"refine_periphery must be a whole number of LSV-ADMM iterations "
                              f">= 0, got {refine_periphery!r}")  # fmt: skip
+        self.normalise_exposure = bool(normalise_exposure)
         self.refinement = None
         if refine_periphery > 0:
             self.refinement = PeripheryRefinement(system, refine_periphery, str(self.device))
@@ -297,8 +310,13 @@ class Reconstructor(BaseReconstructor):
         """One raw frame → its nine sub-views ``(9, S, S)`` float32 (checked, clipped at 0);
         ``(9 k, S, S)`` with each lens's ``k`` context crops for a model with
         :attr:`~svcode_core.network.ModelConfig.lens_context`."""
-        values = finite_frame(frame, index)
-        values = np.maximum(values, 0.0)
+        return self._cut(self._values(frame, index))
+
+    @staticmethod
+    def _values(frame: np.ndarray, index: int) -> np.ndarray:
+        return np.maximum(finite_frame(frame, index), 0.0)
+
+    def _cut(self, values: np.ndarray) -> np.ndarray:
         padded = pad_sensor_frame(torch.from_numpy(values), self.system)
         return np.ascontiguousarray(self._crop_views(padded, self.system).numpy())
 
@@ -364,14 +382,19 @@ class Reconstructor(BaseReconstructor):
         def run(tiles: np.ndarray, origins: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
             return self._run_batch(tiles, origins, return_views)
 
+        gains = np.ones(count)
         for index in range(count):
             start = time.perf_counter()
-            sub_views = self.prepare(stack[index], index)
+            values = self._values(stack[index], index)
+            sub_views = self._cut(values)
             active = None
-            if self.skip_empty:
+            if self.skip_empty:  # the sensor's noise is in the frame's own units
                 active = tiles_with_signal(sub_views, self.grid, self.skip_threshold)
                 if not active.any() and sub_views.max() > 0:
                     self._warn_all_skipped()
+            if self.normalise_exposure:
+                gains[index] = exposure_gain(values)
+                sub_views *= np.float32(gains[index])
             timings["prepare"] += time.perf_counter() - start
             start = time.perf_counter()
             tiled = iter_tiled(
@@ -380,7 +403,7 @@ class Reconstructor(BaseReconstructor):
             output = yield from _relay(tiled, index, count)
             timings["model"] += output.model_seconds
             timings["blend"] += time.perf_counter() - start - output.model_seconds
-            recon[index] = output.reconstruction
+            recon[index] = output.reconstruction / np.float32(gains[index])
             if self.refinement is not None:
                 yield FrameProgress(index, count, output.tiles_run, output.tiles_run, True)
                 if cancel is not None and cancel.is_set():
@@ -389,10 +412,11 @@ class Reconstructor(BaseReconstructor):
                 recon[index] = self.refinement(stack[index], recon[index], index)
                 timings["refine"] += time.perf_counter() - start
             if views is not None:
-                views[index] = output.views
+                views[index] = output.views / np.float32(gains[index])
             result.tiles_run += output.tiles_run
             result.tiles_skipped += output.tiles_skipped
         result.tiles_total = result.tiles_run + result.tiles_skipped
+        result.exposure_gains = gains
         timings["total"] = time.perf_counter() - start_all
         result.timings = timings
         if single:

@@ -3,7 +3,9 @@
 :class:`LearnedReconstructor` keeps the contract of every method
 (:class:`~svcode_core.methods.base.BaseReconstructor`), so the streaming command line and
 the dask back end run these methods like the others. Both map the whole padded frame to the
-object at once: there is no tiling and no demixing, so no views are returned.
+object at once: there is no tiling and no demixing, so no views are returned. Frames are
+brought to one exposure level before the network and the output scaled back
+(:mod:`~svcode_core.methods.exposure`).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from ...config import SystemConfig
 from ...physics.geometry import pad_sensor_frame
 from .. import registry
 from ..base import FrameByFrame, precision_dtype, resolve_device
+from ..exposure import exposure_gain
 from ..frames import finite_frame
 from ..registry import LEARNED_METHODS, method_of_architecture
 
@@ -37,12 +40,20 @@ class LearnedReconstructor(FrameByFrame):
     precision : {"fp32", "bf16"}
         ``bf16`` runs the refinement U-Net under autocast; the Fourier filters always run
         in float32 (torch has no half-precision FFT on the CPU).
+    normalise_exposure : bool
+        Bring each frame to the training level and scale the output back (default);
+        ``False`` runs the frames as they are.
     """
 
     has_views = False
 
     def __init__(
-        self, model: nn.Module, system: SystemConfig, device: str = "cpu", precision: str = "fp32"
+        self,
+        model: nn.Module,
+        system: SystemConfig,
+        device: str = "cpu",
+        precision: str = "fp32",
+        normalise_exposure: bool = True,
     ) -> None:
         architectures = [registry.method(name).architecture for name in LEARNED_METHODS]
         if type(model).__name__ not in architectures:
@@ -55,6 +66,7 @@ class LearnedReconstructor(FrameByFrame):
         self.model = model.to(self.device).eval()
         self.system = system
         self.precision = precision
+        self.normalise_exposure = bool(normalise_exposure)
 
     @classmethod
     def from_weights(
@@ -67,7 +79,8 @@ class LearnedReconstructor(FrameByFrame):
         """Load a model file (and its system, unless given).
 
         ``method`` (``"multiwiener"`` or ``"fouriernet"``), when given, must name the
-        file's architecture. ``options`` are ``device`` and ``precision``.
+        file's architecture. ``options`` are those of the constructor (``device``,
+        ``precision``, ``normalise_exposure``).
         """
         from ..model_file import load_model, read_model_metadata
 
@@ -86,9 +99,11 @@ class LearnedReconstructor(FrameByFrame):
     ) -> tuple[np.ndarray, None]:
         """One raw frame → its float32 reconstruction (these methods do not demix)."""
         values = finite_frame(frame, index)
-        padded = pad_sensor_frame(torch.from_numpy(values).to(self.device), self.system)
+        gain = exposure_gain(np.maximum(values, 0.0)) if self.normalise_exposure else 1.0
+        padded = pad_sensor_frame(torch.from_numpy(values * np.float32(gain)).to(self.device),
+                                  self.system)
         bf16 = self.precision == "bf16"
         with torch.inference_mode(), torch.autocast(self.device.type, dtype=torch.bfloat16,
                                                     enabled=bf16):  # fmt: skip
             estimate = self.model(padded[None])[0, 0]
-        return estimate.float().cpu().numpy(), None
+        return estimate.float().cpu().numpy() / np.float32(gain), None
