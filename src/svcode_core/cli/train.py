@@ -86,6 +86,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="weight of the squared error in the outer ring of the field "
                         f"(normalised radius above {RING_RADIUS}, the benchmark's ring: seen by "
                         "fewer lenses, so noisier; default 1, as elsewhere)")
+    parser.add_argument("--photon-range", type=float, nargs=2, metavar=("LOW", "HIGH"),
+                        default=defaults.photon_range,
+                        help="scale each training sample's photon level by a factor drawn "
+                        "log-uniformly from LOW..HIGH (dimmer samples than the dataset; "
+                        "needs a dataset with departures; default 1 1)")
+    parser.add_argument("--normalise-exposure", action="store_true",
+                        help="bring every frame to the reference level, as reconstruction "
+                        "does (default: frames as simulated)")
     parser.add_argument("--patches-per-epoch", type=int,
                         help="training patches drawn per epoch (default: all)")
     parser.add_argument("--val-patches", type=int,
@@ -135,6 +143,7 @@ def run(args: argparse.Namespace) -> int:
         ring_weight=args.ring_weight,
         patches_per_epoch=args.patches_per_epoch, val_patches=args.val_patches,
         seed=args.seed, workers=args.workers, same_origin=args.same_origin,
+        photon_range=tuple(args.photon_range), normalise_exposure=args.normalise_exposure,
     )
     device = torch.device(args.device)
     dist = init_distributed(device.type)

@@ -27,6 +27,7 @@ on use with :meth:`TrainingData.frame_sensor`.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from dataclasses import dataclass
@@ -223,17 +224,25 @@ class TrainingData:
         """The departures frame ``index`` was simulated with (``None``: nominal)."""
         return frame_departures(self.recipe, index)
 
-    def frame_sensor(self, index: int) -> SensorModel:
+    def frame_sensor(self, index: int, photon_factor: float = 1.0) -> SensorModel:
         """The camera that reads frame ``index``: ``.read(expected, generator)`` draws noise.
 
         The stored views already hold the frame's fixed-pattern maps, so the model has
         none; it carries the frame's photon level, read noise, saturation and ADC (the
         nominal ``system.noise`` for a dataset without departures). Its ``read`` acts
         pixel by pixel, so it applies to patches of the views as well as to whole frames.
+        ``photon_factor`` scales the frame's photon level (a dimmer sample read by the
+        same camera); it needs a dataset with departures that set the photon level.
         """
         from ..physics.instrument import sensor_model
 
         departures = self.frame_departures(index) or Departures()
+        if photon_factor != 1.0:
+            if departures.photons is None:
+                raise ValueError(f"{self.path}: the photon level of its frames is not "
+                                 "recorded (no departures with photons): it cannot be scaled")
+            departures = dataclasses.replace(departures,
+                                             photons=departures.photons * photon_factor)
         sensor = sensor_model(self.system.noise, departures, (1, 1))
         return SensorModel(sensor.noise, adc_bits=sensor.adc_bits)
 

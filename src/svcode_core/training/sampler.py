@@ -19,12 +19,14 @@ in ``cm2-v2``); independent noise per view crop is then exactly noise on the sen
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator, Sequence
 
 import numpy as np
 import torch
 
 from ..config import SystemConfig
+from ..methods.exposure import exposure_gain
 from ..methods.tiling import TileGrid
 from ..physics.geometry import (
     assemble_frame,
@@ -33,6 +35,7 @@ from ..physics.geometry import (
     pad_sensor_frame,
     sensor_coverage,
 )
+from ..physics.noise import SensorModel
 from .dataset import TrainingData
 
 __all__ = [
@@ -79,6 +82,11 @@ class _NoisySamples(torch.utils.data.Dataset):
 
     ``fixed_noise`` (validation): sample ``i`` always gets the draw seeded by ``(seed, i)``;
     otherwise every access draws fresh noise, unless the key is ``(index, noise_seed)``.
+    ``photon_range`` ``(low, high)``: every access draws a factor on the frame's photon
+    level log-uniformly from it (dimmer samples, the same camera). ``normalise_exposure``:
+    the inputs and targets of a frame are multiplied by the gain that brings the frame to
+    :data:`~svcode_core.methods.exposure.REFERENCE_LEVEL`, as the reconstructors do (its
+    level measured on the noiseless frame, once).
     """
 
     def __init__(
@@ -88,6 +96,8 @@ class _NoisySamples(torch.utils.data.Dataset):
         fixed_noise: bool = False,
         seed: int = 0,
         noise: bool = True,
+        photon_range: tuple[float, float] = (1.0, 1.0),
+        normalise_exposure: bool = False,
     ) -> None:
         frames = sorted({int(f) for f in frames})
         if not frames:
@@ -97,7 +107,35 @@ class _NoisySamples(torch.utils.data.Dataset):
                              f"got {frames[0]}..{frames[-1]}")
         self.data, self.system, self.frames = data, data.system, frames
         self.fixed_noise, self.seed, self.noise = fixed_noise, int(seed), noise
+        low, high = photon_range
+        if not 0 < low <= high:
+            raise ValueError(f"photon_range must satisfy 0 < low <= high, got {photon_range!r}")
+        self.photon_range = (float(low), float(high))
+        self.normalise_exposure = normalise_exposure
+        self._gains: dict[int, float] = {}
         self._generator = torch.Generator().manual_seed(derive_seed(self.seed, 2))
+
+    def sensor(self, frame: int, generator: torch.Generator) -> SensorModel:
+        """Frame ``frame``'s camera, at a photon level drawn from ``photon_range``."""
+        low, high = self.photon_range
+        factor = 1.0
+        if high > low:
+            u = float(torch.rand((), generator=generator))
+            factor = math.exp(math.log(low) + u * (math.log(high) - math.log(low)))
+        elif low != 1.0:
+            factor = low
+        return self.data.frame_sensor(frame, factor)
+
+    def gain(self, frame: int) -> float:
+        """The factor that brings frame ``frame`` to the reference level (1 unless
+        ``normalise_exposure``)."""
+        if not self.normalise_exposure:
+            return 1.0
+        if frame not in self._gains:
+            views = torch.from_numpy(np.array(self.data.views[frame]))
+            sensor = crop_to_sensor(assemble_frame(views, self.system), self.system)
+            self._gains[frame] = exposure_gain(sensor.numpy())
+        return self._gains[frame]
 
     def _resolve(self, key: int | tuple[int, int]) -> tuple[int, torch.Generator]:
         """Sample index and noise generator of an item key."""
@@ -118,7 +156,7 @@ class _NoisySamples(torch.utils.data.Dataset):
         if not self.noise:
             return padded
         sensor = crop_to_sensor(padded, self.system)
-        sensor = self.data.frame_sensor(frame).read(sensor, generator)
+        sensor = self.sensor(frame, generator).read(sensor, generator)
         return pad_sensor_frame(sensor, self.system)
 
 
@@ -145,6 +183,8 @@ class PatchDataset(_NoisySamples):
     context_reach : int
         With ``lens_context``, how many pitches left and right the crops go
         (:attr:`~svcode_core.network.ModelConfig.context_reach`; ``(99, P, P)`` at 2).
+    photon_range, normalise_exposure
+        Dimmer draws and one exposure level (see ``_NoisySamples``).
 
     Notes
     -----
@@ -163,8 +203,11 @@ class PatchDataset(_NoisySamples):
         noise: bool = True,
         lens_context: bool = False,
         context_reach: int = 1,
+        photon_range: tuple[float, float] = (1.0, 1.0),
+        normalise_exposure: bool = False,
     ) -> None:
-        super().__init__(data, frames, fixed_noise, seed, noise)
+        super().__init__(data, frames, fixed_noise, seed, noise, photon_range,
+                         normalise_exposure)
         system = data.system
         self.patch, self.lens_context = system.patch_size, lens_context
         self.context_reach = context_reach
@@ -195,11 +238,13 @@ class PatchDataset(_NoisySamples):
             views = torch.from_numpy(np.array(self.data.views[frame][(slice(None), *crop)]))
             if self.noise:
                 inside = torch.from_numpy(self.sensor_mask[(slice(None), *crop)])
-                views = self.data.frame_sensor(frame).read(views, generator) * inside
+                views = self.sensor(frame, generator).read(views, generator) * inside
+        gain = self.gain(frame)
+        demixed = torch.from_numpy(np.array(self.data.demixed[frame][(slice(None), *crop)]))
         return {
-            "views": views,
-            "demixed": torch.from_numpy(np.array(self.data.demixed[frame][(slice(None), *crop)])),
-            "object": torch.from_numpy(np.array(self.data.objects[frame][crop]))[None],
+            "views": views * gain,
+            "demixed": demixed * gain,
+            "object": torch.from_numpy(np.array(self.data.objects[frame][crop]))[None] * gain,
             "origin": torch.tensor([r, c], dtype=torch.int64),
             "index": index,
         }
@@ -229,9 +274,10 @@ class FrameDataset(_NoisySamples):
         if not 0 <= index < len(self):
             raise IndexError(f"frame index {index} out of range [0, {len(self)})")
         frame = self.frames[index]
+        gain = self.gain(frame)
         return {
-            "frame": self.padded_frame(frame, generator),
-            "object": torch.from_numpy(np.array(self.data.objects[frame]))[None],
+            "frame": self.padded_frame(frame, generator) * gain,
+            "object": torch.from_numpy(np.array(self.data.objects[frame]))[None] * gain,
             "index": index,
         }
 

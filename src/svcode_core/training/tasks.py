@@ -60,12 +60,14 @@ class PatchTask:
         return SVCoDe(self.config)
 
     def dataset(
-        self, data: TrainingData, frames: Sequence[int], fixed_noise: bool, seed: int
+        self, data: TrainingData, frames: Sequence[int], fixed_noise: bool, seed: int,
+        **sampling: Any,
     ) -> PatchDataset:
-        """The samples of ``frames``."""
+        """The samples of ``frames`` (``sampling``: photon range and exposure options of
+        :class:`PatchDataset`)."""
         return PatchDataset(data, frames, fixed_noise=fixed_noise, seed=seed,
                             lens_context=self.config.lens_context,
-                            context_reach=self.config.context_reach)
+                            context_reach=self.config.context_reach, **sampling)
 
     def origins(self, dataset: PatchDataset) -> int:
         """Distinct sample origins per frame (patches at one origin share their masks)."""
@@ -109,10 +111,11 @@ class FrameTask:
         return self.model_class.from_operator(CM2Operator.from_system(system), self.config)
 
     def dataset(
-        self, data: TrainingData, frames: Sequence[int], fixed_noise: bool, seed: int
+        self, data: TrainingData, frames: Sequence[int], fixed_noise: bool, seed: int,
+        **sampling: Any,
     ) -> FrameDataset:
-        """The padded frames of ``frames``."""
-        return FrameDataset(data, frames, fixed_noise=fixed_noise, seed=seed)
+        """The padded frames of ``frames`` (``sampling`` as for :class:`PatchTask`)."""
+        return FrameDataset(data, frames, fixed_noise=fixed_noise, seed=seed, **sampling)
 
     def origins(self, dataset: FrameDataset) -> int:
         """One: a sample is the whole frame."""

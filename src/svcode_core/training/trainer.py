@@ -117,6 +117,13 @@ class TrainConfig:
         (:class:`EpochSampler` ``group``); the network computes the coordinate masks once
         per distinct origin in a batch, so ``same_origin = batch_size`` makes a CPU step
         several times cheaper. 1: independent draws. Ignored for whole frames.
+    photon_range : (float, float)
+        Each training sample's photon level is the frame's times a factor drawn
+        log-uniformly from this range (validation keeps the frame's own): the network
+        learns dimmer samples than the dataset holds.
+    normalise_exposure : bool
+        Bring every frame to the reference level before the network, targets alike, as
+        the reconstructors do at inference (:mod:`~svcode_core.methods.exposure`).
     """
 
     epochs: int = 10
@@ -134,6 +141,8 @@ class TrainConfig:
     seed: int = 0
     workers: int = 0
     same_origin: int = 1
+    photon_range: tuple[float, float] = (1.0, 1.0)
+    normalise_exposure: bool = False
 
     def validate(self) -> TrainConfig:
         """Raise ``ValueError`` (:class:`~svcode_core.config.ConfigError`) naming the first
@@ -151,6 +160,9 @@ class TrainConfig:
             raise ConfigError(f"min_lr_ratio: must lie in [0, 1], got {self.min_lr_ratio!r}")
         for name in ("alpha", "beta", "edge_weight", "ring_weight"):
             check_number(name, getattr(self, name), 0)
+        low, high = (check_number("photon_range", v, 0, strict=True) for v in self.photon_range)
+        if low > high:
+            raise ConfigError(f"photon_range: low must not exceed high, got {self.photon_range!r}")
         return self
 
     def to_dict(self) -> dict[str, Any]:
@@ -242,7 +254,9 @@ class Trainer:
             ids = [self.device.index] if self.device.type == "cuda" else None
             self.net = DistributedDataParallel(self.model, device_ids=ids)
 
-        self.train_set = self.task.dataset(data, data.train_frames, False, config.seed)
+        self.train_set = self.task.dataset(data, data.train_frames, False, config.seed,
+                                           photon_range=tuple(config.photon_range),
+                                           normalise_exposure=config.normalise_exposure)
         per_epoch = config.patches_per_epoch or len(self.train_set)
         origins = self.task.origins(self.train_set)
         group = config.same_origin if origins > 1 else 1  # whole frames: nothing to share
@@ -254,7 +268,8 @@ class Trainer:
                 f"{len(self.sampler)} patches per process and epoch make no batch of "
                 f"{config.batch_size}: raise patches_per_epoch or lower batch_size"
             )
-        self.val_set = self.task.dataset(data, data.val_frames, True, config.seed)
+        self.val_set = self.task.dataset(data, data.val_frames, True, config.seed,
+                                         normalise_exposure=config.normalise_exposure)
         val_indices = np.arange(len(self.val_set))
         if config.val_patches is not None and config.val_patches < len(val_indices):
             rng = np.random.default_rng(derive_seed(config.seed, 5))
