@@ -26,6 +26,7 @@ from torch import nn
 from ..config import SystemConfig
 from ..network.config import ModelConfig
 from ..network.models import DemixNet, ReconNet, SVCoDe
+from .base import resolve_device
 from .learned.models import LEARNED_MODELS
 
 __all__ = ["FORMAT", "load_model", "read_model_metadata", "save_model"]
@@ -157,6 +158,7 @@ def load_model(
         Not a safetensors model file (pickle, zip, truncated), a system that differs
         (listing the fields), or tensors whose names or shapes do not fit the config.
     """
+    device = resolve_device(device)  # an unavailable device is refused before any work
     meta = read_model_metadata(path)
     stored: SystemConfig = meta["system"]
     if system is not None:
