@@ -189,8 +189,9 @@ class PatchDataset(_NoisySamples):
     Notes
     -----
     Items are dictionaries of ``views (9, P, P)``, ``demixed (9, P, P)``, ``object
-    (1, P, P)`` float32 tensors, ``origin (2,)`` int64 (row, col in sub-view pixels) and
-    ``index``. An item may be requested by index, or by ``(index, noise_seed)`` to fix the
+    (1, P, P)`` float32 tensors, ``origin (2,)`` int64 (row, col in sub-view pixels), the
+    frame's exposure ``gain`` (float32, 1 unless ``normalise_exposure``) and ``index``. An
+    item may be requested by index, or by ``(index, noise_seed)`` to fix the
     draw (:class:`EpochSampler` does this, so training is reproducible and resumable).
     """
 
@@ -246,6 +247,7 @@ class PatchDataset(_NoisySamples):
             "demixed": demixed * gain,
             "object": torch.from_numpy(np.array(self.data.objects[frame][crop]))[None] * gain,
             "origin": torch.tensor([r, c], dtype=torch.int64),
+            "gain": torch.tensor(gain, dtype=torch.float32),
             "index": index,
         }
 
@@ -263,7 +265,7 @@ class FrameDataset(_NoisySamples):
     Notes
     -----
     Items are dictionaries of ``frame (H_pad, W_pad)`` and ``object (1, S, S)`` float32
-    tensors and ``index``; keys as in :class:`PatchDataset`.
+    tensors, ``gain`` and ``index``; keys as in :class:`PatchDataset`.
     """
 
     def __len__(self) -> int:
@@ -278,6 +280,7 @@ class FrameDataset(_NoisySamples):
         return {
             "frame": self.padded_frame(frame, generator) * gain,
             "object": torch.from_numpy(np.array(self.data.objects[frame]))[None] * gain,
+            "gain": torch.tensor(gain, dtype=torch.float32),
             "index": index,
         }
 

@@ -75,7 +75,7 @@ class PatchTask:
 
     def collate(self, items: list[dict[str, Any]]) -> dict[str, torch.Tensor]:
         """Stack samples into a batch."""
-        return _stack(items, ("views", "demixed", "object", "origin"))
+        return _stack(items, ("views", "demixed", "object", "origin", "gain"))
 
     def outputs(
         self, net: nn.Module, batch: dict[str, torch.Tensor], system: SystemConfig
@@ -123,7 +123,7 @@ class FrameTask:
 
     def collate(self, items: list[dict[str, Any]]) -> dict[str, torch.Tensor]:
         """Stack samples into a batch."""
-        return _stack(items, ("frame", "object"))
+        return _stack(items, ("frame", "object", "gain"))
 
     def outputs(
         self, net: nn.Module, batch: dict[str, torch.Tensor], system: SystemConfig

@@ -387,7 +387,9 @@ class Trainer:
                                      self._loss_weights(batch))
                 n = len(items)
                 values = {"loss": float(loss) * n}
+                gain = batch["gain"].view(-1, 1, 1, 1)  # scored in the frame's own units
                 for stage, (prediction, target) in stages.items():
+                    prediction, target = prediction / gain, target / gain
                     values[f"{stage}_psnr"] = float(psnr_per_sample(prediction, target).sum())
                     values[f"{stage}_ssim"] = float(ssim_per_sample(prediction, target).sum())
                 sums += torch.tensor([values[name] for name in names] + [n], dtype=torch.float64)
