@@ -1003,3 +1003,22 @@ def test_screenshot_calibration_overlay(qtbot, tmp_path, make_napari_viewer):
     widget._lens.value = 1
     assert len(viewer.layers["sub-views"].data) == 1
     _screenshot(qtbot, viewer, "napari-calibration.png", tmp_path)
+
+
+def test_frames_the_core_would_warn_about_are_named_before_the_run(
+        qtbot, tiny_system, make_napari_viewer, make_model_file, tmp_path, warnings):
+    """12-bit counts in 16-bit words and a blank frame: the same words as the command
+    line, each a two-line notice (problem, what to do); the run goes on."""
+    viewer = make_napari_viewer()
+    stack = (_raw_stack(tiny_system, 2) * 4000).astype(np.uint16)
+    stack[1] = 0
+    viewer.add_image(stack, name="raw", metadata=layer_metadata(tiny_system, "measurement"))
+    widget = _dock(viewer, ReconstructWidget)
+    _use_model(widget, make_model_file(tmp_path / "tiny.safetensors", tiny_system))
+    worker = widget.start()
+    assert worker is not None
+    _wait_done(qtbot, widget)
+    causes = [message.split("\n")[0] for message in warnings]
+    assert any("at most 12 bits" in cause for cause in causes), warnings
+    assert any("blank frames" in cause for cause in causes), warnings
+    assert all(len(message.split("\n")) == 2 for message in warnings)

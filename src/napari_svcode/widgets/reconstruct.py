@@ -37,6 +37,7 @@ from svcode_core.methods import (
     iter_method,
 )
 from svcode_core.methods.base import FrameProgress, ReconstructionResult, check_frame_shape
+from svcode_core.methods.frames import frame_warnings
 
 from .._errors import LOG, notify_error, notify_warning
 from .._layers import (
@@ -320,6 +321,8 @@ class ReconstructWidget(Container):
         except (ValueError, FileNotFoundError) as err:
             notify_error(err, "check the raw layer, its system (Calibration) and the model")
             return None
+        for problem, fix in frame_warnings(frames):  # what the core would warn about
+            notify_warning(problem, fix)
         warning = self._cost_warning()
         if warning and self._confirmed != self._settings_key():
             self._confirmed = self._settings_key()

@@ -48,6 +48,7 @@ __all__ = [
     "WARN_ABOVE",
     "as_frame_stack",
     "finite_frame",
+    "frame_warnings",
     "require_frames",
 ]
 
@@ -106,15 +107,56 @@ def _integer_scale(dtype: np.dtype, index: int) -> float:
     return float(np.iinfo(dtype).max)
 
 
-def _warn_few_bits(raw: np.ndarray) -> None:
-    if raw.dtype.itemsize == 2 and raw.size and 0 < int(raw.max()) < 1 << 12:
-        warnings.warn(
-            f"{raw.dtype} frames that use at most 12 bits are divided by "
-            f"{np.iinfo(raw.dtype).max}, their type's full scale: if the sensor has fewer "
-            "bits, pass its full-scale count instead (--input-scale 4095 for 12 bits)",
-            UserWarning,
-            stacklevel=2,
-        )
+# What the checks warn about, as (problem, what to do): warnings.warn joins the two with
+# ": "; a front end can show them apart (frame_warnings).
+def _few_bits(dtype: np.dtype) -> tuple[str, str]:
+    return (f"{dtype} frames that use at most 12 bits are divided by "
+            f"{np.iinfo(dtype).max}, their type's full scale",
+            "if the sensor has fewer bits, pass its full-scale count instead "
+            "(--input-scale 4095 for 12 bits)")
+
+
+_ABOVE = (f"frames reach more than {WARN_ABOVE / FULL_SCALE:g}× the sensor's full scale "
+          f"{FULL_SCALE:g} (refused beyond {FAR_ABOVE:g}); they are reconstructed as they "
+          "are, but a real sensor clips at its full scale", "check the input scale")
+_BLANK = ("blank frames (every value 0: a closed shutter or a dropped frame?) are "
+          "reconstructed as 0", "check the recording if no frame should be dark")
+
+
+def _warn(message: tuple[str, str]) -> None:
+    warnings.warn(": ".join(message), UserWarning, stacklevel=3)
+
+
+def _uses_few_bits(raw: np.ndarray) -> bool:
+    return raw.dtype.kind in "iu" and raw.dtype.itemsize == 2 and raw.size > 0 and (
+        0 < int(raw.max()) < 1 << 12)
+
+
+def frame_warnings(frames: Any, scale: float | None = None) -> list[tuple[str, str]]:
+    """What reconstructing ``frames`` would warn about, found without reconstructing
+    them: ``(problem, what to do)`` pairs, for a front end to show before a run.
+
+    Examples
+    --------
+    >>> frames = np.zeros((2, 4, 4), np.uint16)
+    >>> frames[0] = 4000  # 12-bit counts; frame 1 is blank
+    >>> for problem, _ in frame_warnings(frames):
+    ...     print(problem.split(",")[0].split(" (")[0])
+    uint16 frames that use at most 12 bits are divided by 65535
+    blank frames
+    """
+    stack = as_frame_stack(frames)
+    found = []
+    if scale is None and _uses_few_bits(stack):
+        found.append(_few_bits(stack.dtype))
+    top = float(stack.max()) if stack.size else 0.0
+    full = scale if scale is not None else (
+        float(np.iinfo(stack.dtype).max) if stack.dtype.kind in "iu" else 1.0)
+    if top / full > WARN_ABOVE:
+        found.append(_ABOVE)
+    if not stack.reshape(len(stack), -1).any(axis=1).all():
+        found.append(_BLANK)
+    return found
 
 
 def _check_range(values: np.ndarray, index: int) -> None:
@@ -135,12 +177,7 @@ def _check_range(values: np.ndarray, index: int) -> None:
             "VALUE) or rescale the frames to full scale 1.0"
         )
     if top == 0 == bottom:
-        warnings.warn(
-            "blank frames (every value 0: a closed shutter or a dropped frame?) are "
-            "reconstructed as 0",
-            UserWarning,
-            stacklevel=2,
-        )
+        _warn(_BLANK)
     if top <= 0 < -bottom:
         raise ValueError(
             f"frame {index} has no positive value (it lies in [{bottom:.4g}, {top:.4g}]); "
@@ -148,13 +185,7 @@ def _check_range(values: np.ndarray, index: int) -> None:
             "and any dark-frame subtraction"
         )
     if top > WARN_ABOVE:
-        warnings.warn(
-            f"frames reach more than {WARN_ABOVE / FULL_SCALE:g}× the sensor's full scale "
-            f"{FULL_SCALE:g} (refused beyond {FAR_ABOVE:g}); they are reconstructed as they "
-            "are, but a real sensor clips at its full scale: check the input scale",
-            UserWarning,
-            stacklevel=2,
-        )
+        _warn(_ABOVE)
 
 
 def finite_frame(
@@ -196,7 +227,8 @@ def finite_frame(
         values = (np.asarray(raw, dtype=np.float64) / scale).astype(dtype, copy=False)
     elif raw.dtype.kind in "iu":
         full_scale = _integer_scale(raw.dtype, index)
-        _warn_few_bits(raw)
+        if _uses_few_bits(raw):
+            _warn(_few_bits(raw.dtype))
         values = (np.asarray(raw, dtype=np.float64) / full_scale).astype(dtype, copy=False)
     else:
         values = np.asarray(raw, dtype=dtype)
