@@ -4,6 +4,7 @@ the files left behind."""
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 
@@ -545,3 +546,223 @@ def test_missing_and_unreadable_inputs_are_one_line(scene, capsys):
     status, err = wiener(capsys, scene / "text.tif", scene / "out.tif")
     assert status == 2
     one_error_line(err, "text.tif")
+
+
+# ------------------------------------------------------- 7. the second battery (issue 47)
+def _full_disk(monkeypatch, how, free=100_000):
+    """Make the disk look full: ``"free"`` reports ``free`` bytes free, ``"fallocate"``
+    lets the space check pass and reserving the blocks fail as a full disk does."""
+    if how == "free":
+        real = outputs.shutil.disk_usage
+
+        def usage(path):
+            total, used, _ = real(path)
+            return type(real(path))(total, used, free)
+
+        monkeypatch.setattr(outputs.shutil, "disk_usage", usage)
+    else:
+
+        def fallocate(fd, offset, length):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        monkeypatch.setattr(os, "posix_fallocate", fallocate, raising=False)
+
+
+@pytest.mark.parametrize("how", ["free", "fallocate"])
+@pytest.mark.parametrize("source", ["stack", "frame-with-views"])
+def test_reconstruct_onto_a_full_disk_is_refused_before_any_work(
+    scene, tiny_system, capsys, monkeypatch, how, source
+):
+    _no_work(monkeypatch)
+    more = []
+    if source == "stack":
+        write_tiff(scene / "input.tif", np.full((5, *tiny_system.sensor_shape), 0.3, np.float32),
+                   tiny_system)  # fmt: skip
+        (scene / "meas.tif").unlink()
+    else:
+        (scene / "meas.tif").rename(scene / "input.tif")
+        more = ["--views", scene / "views.tif"]
+    _full_disk(monkeypatch, how)
+    status, err = wiener(capsys, scene / "input.tif", scene / "out.tif", *more)
+    assert status == 2
+    one_error_line(err, f"no space left on {scene}: ", " MiB needed, ", " MiB free")
+    assert names(scene) == ["input.tif", "system.json"]
+
+
+def test_reconstruct_reserves_the_space_of_its_outputs(scene, capsys, monkeypatch):
+    reserved = []
+    monkeypatch.setattr(os, "posix_fallocate",
+                        lambda fd, offset, length: reserved.append(length), raising=False)
+    assert wiener(capsys, scene / "meas.tif", scene / "out.tif", "--views",
+                  scene / "views.tif")[0] == 0  # fmt: skip
+    size = scene.joinpath("out.tif").stat().st_size, scene.joinpath("views.tif").stat().st_size
+    assert set(size) <= set(reserved)  # the whole files, before a pixel was written
+
+
+@pytest.mark.parametrize("how", ["free", "midway"])
+def test_simulate_onto_a_full_disk_leaves_nothing(scene, capsys, monkeypatch, how):
+    from svcode_core import io
+    from svcode_core.physics import simulate
+
+    if how == "free":
+        _full_disk(monkeypatch, "free")
+    else:  # the second TIFF fails as numpy's writer says it, without an errno
+        write, calls = io._write_tiff_data, []
+
+        def fails_second(*args, **kwargs):
+            calls.append(1)
+            if len(calls) == 2:
+                raise OSError("1327104 requested and 214720 written")
+            return write(*args, **kwargs)
+
+        monkeypatch.setattr(io, "_write_tiff_data", fails_second)
+        monkeypatch.setattr(simulate, "free_bytes", lambda path: 214720)
+    status, err = run(capsys, "simulate", "--system", scene / "system.json", "--out",
+                      scene / "sim")  # fmt: skip
+    assert status == 2
+    one_error_line(err, f"no space left on {scene}", " MiB needed, ", " MiB free")
+    assert names(scene) == ["meas.tif", "system.json"]
+
+
+def test_a_failed_simulation_keeps_the_earlier_scene_whole(scene, capsys, monkeypatch):
+    from svcode_core import io
+
+    args = ["simulate", "--system", scene / "system.json", "--out", scene / "sim"]
+    assert run(capsys, *args, "--seed", "1")[0] == 0
+    before = {name: (scene / "sim" / name).read_bytes() for name in names(scene / "sim")}
+    write, calls = io._write_tiff_data, []
+
+    def fails_third(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return write(*args, **kwargs)
+
+    monkeypatch.setattr(io, "_write_tiff_data", fails_third)
+    status, err = run(capsys, *args, "--seed", "2")
+    assert status == 2 and "no space left on" in err
+    assert {name: (scene / "sim" / name).read_bytes() for name in names(scene / "sim")} == before
+
+
+def test_reconstruct_refuses_a_system_with_every_chief_ray_off_the_sensor(scene, capsys,
+                                                                          monkeypatch):
+    _no_work(monkeypatch)
+    system = _system_with_rays(scene, [[3, 3]] * 9, "off.json")
+    status, err = wiener(capsys, scene / "meas.tif", scene / "out.tif", "--system", system)
+    assert status == 2
+    one_error_line(err, "all nine chief rays lie outside")
+    assert names(scene) == ["meas.tif", "off.json", "system.json"]
+
+
+def test_bench_refuses_zero_threads(tmp_path, capsys):
+    status, err = run(capsys, "bench", "--threads", "0", "--out", tmp_path / "bench")
+    assert status == 2
+    one_error_line(err, "--threads must be >= 1 (torch CPU threads), got 0")
+    assert not (tmp_path / "bench").exists()
+
+
+@pytest.mark.parametrize("option, fragment", [
+    (["--method", "admm", "--iterations", "-1"], "--iterations must be >= 1, got -1"),
+    (["--method", "rl", "--iterations", "0"], "--iterations must be >= 1, got 0"),
+    (["--method", "admm", "--tv-weight", "nan"], "--tv-weight must be a finite number >= 0"),
+    (["--method", "admm", "--cg-iterations", "0"], "--cg-iterations must be >= 1"),
+    (["--method", "admm", "--rho", "-1"], "--rho must be a finite number > 0, got -1"),
+    (["--method", "admm", "--tolerance", "nan"], "--tolerance must be a finite number >= 0"),
+    (["--method", "wiener", "--wiener-balance", "-1"], "--wiener-balance must be a finite"),
+    (["--method", "wiener", "--rank", "0"], "--rank must be >= 1, got 0"),
+    (["--mask-cache", "-5"], "--mask-cache must be >= 0 (MiB; 0 recomputes the masks), got -5"),
+    (["--tile", "-3"], "--tile must be >= 1 (pixels), got -3"),
+    (["--stride", "0"], "--stride must be >= 1 (pixels), got 0"),
+    (["--batch-size", "0"], "--batch-size must be >= 1 (tiles), got 0"),
+    (["--pool-window", "-1"], "--pool-window must be >= 0 (pixels), got -1"),
+    (["--refine-periphery", "-2"], "--refine-periphery must be >= 0 (iterations), got -2"),
+    (["--method", "admm", "--weights", "tiny.safetensors"],
+     "--weights does not apply to --method admm"),
+])  # fmt: skip
+def test_reconstruct_options_are_checked_before_any_work(scene, weights, capsys, monkeypatch,
+                                                         option, fragment):
+    _no_work(monkeypatch)
+    option = [str(weights) if o == "tiny.safetensors" else o for o in option]
+    args = [] if "--method" in option or "--weights" in option else ["--weights", weights]
+    status, err = _svcode(capsys, scene, *args, *option)
+    assert status == 2
+    one_error_line(err, fragment)
+    assert "mask_cache" not in err and " balance must" not in err
+    assert names(scene) == sorted(["meas.tif", "system.json", weights.name])
+
+
+def test_reconstruct_options_are_checked_before_the_registration(scene, capsys, monkeypatch):
+    from svcode_core.cli import reconstruct
+
+    def refuse(*args):
+        raise AssertionError("registered before the options were checked")
+
+    monkeypatch.setattr(reconstruct, "_register", refuse)
+    status, err = wiener(capsys, scene / "meas.tif", scene / "out.tif", "--register",
+                         "--wiener-balance", "-1")  # fmt: skip
+    assert status == 2 and "--wiener-balance must be" in err
+
+
+def test_demo_onto_an_existing_file_is_refused_before_any_work(scene, capsys, monkeypatch):
+    from svcode_core.physics import simulate
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("simulated before the output check")
+
+    monkeypatch.setattr(simulate.Simulator, "__init__", refuse)
+    (scene / "notes.txt").write_text("x")
+    status, err = run(capsys, "demo", "--out", scene / "notes.txt")
+    assert status == 2
+    one_error_line(err, "notes.txt", "is a file, not a directory")
+    assert (scene / "notes.txt").read_text() == "x"
+
+
+def test_a_terminated_run_releases_its_lock_and_resumes(scene, tiny_system, capsys,
+                                                        monkeypatch):
+    import signal
+
+    from svcode_core.methods.baselines import BaselineReconstructor
+
+    stack = np.stack([np.full(tiny_system.sensor_shape, 0.1 * (i + 1), np.float32)
+                      for i in range(4)])  # fmt: skip
+    write_tiff(scene / "stack.tif", stack, tiny_system)
+    original, calls = BaselineReconstructor.reconstruct, []
+
+    def killed_on_third(self, frames, return_views=False):
+        calls.append(1)
+        if len(calls) == 3:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return original(self, frames, return_views)
+
+    monkeypatch.setattr(BaselineReconstructor, "reconstruct", killed_on_third)
+    before = signal.getsignal(signal.SIGTERM)
+    status, err = wiener(capsys, scene / "stack.tif", scene / "out.tif")
+    assert status == 143
+    one_error_line(err, "svcode reconstruct: terminated")
+    assert signal.getsignal(signal.SIGTERM) == before
+    assert not (scene / "out.tif.lock").exists()
+    assert {"out.tif.partial", "out.tif.done.npy", "out.tif.resume.json"} <= set(names(scene))
+    monkeypatch.setattr(BaselineReconstructor, "reconstruct", original)
+    assert wiener(capsys, scene / "stack.tif", scene / "out.tif")[0] == 0
+    assert names(scene) == ["meas.tif", "out.tif", "stack.tif", "system.json"]
+
+
+@pytest.mark.parametrize("channels", [3, 4])
+def test_simulate_says_a_colour_object_is_taken_as_grey(scene, capsys, channels):
+    image = np.zeros((30, 30, channels), np.uint8)
+    image[10:20, 5:15] = 200
+    tifffile.imwrite(scene / "colour.tif", image, photometric="rgb")
+    status, err = run(capsys, "simulate", "--system", scene / "system.json",
+                      "--object", scene / "colour.tif", "--out", scene / "sim")
+    assert status == 0
+    assert err.count("\n") == 1 and "warning: --object colour.tif is a colour image" in err
+    assert "from its luminance" in err
+
+
+def test_dataset_onto_a_full_disk_is_refused_before_any_work(scene, capsys, monkeypatch):
+    _full_disk(monkeypatch, "free")
+    status, err = run(capsys, "dataset", "--system", scene / "system.json", "--frames", "4",
+                      "--out", scene / "data", "--no-progress")  # fmt: skip
+    assert status == 2
+    one_error_line(err, f"no space left on {scene}: ", " MiB needed, ")
+    assert names(scene) == ["meas.tif", "system.json"]

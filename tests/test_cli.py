@@ -66,3 +66,20 @@ def test_a_command_builds_only_its_own_parser():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True)  # fmt: skip
     assert out.stdout.strip() == "[]"
+
+
+@pytest.mark.parametrize("command, option, message", [
+    ("dataset", ["--frames", "1"], "--frames: must be >= 2, got 1"),
+    ("dataset", ["--val-fraction", "2"], "--val-fraction: must lie in (0, 1), got 2.0"),
+    ("dataset", ["--instrument-frames", "0"], "--instrument-frames: must be >= 1, got 0"),
+    ("simulate", ["--memory-budget", "-1"], "--memory-budget must be a positive number of GiB"),
+])  # fmt: skip
+def test_option_errors_name_the_option_as_given(system_json, tmp_path, capsys, command,
+                                                option, message):
+    args = [command, "--system", str(system_json), "--out", str(tmp_path / "out")]
+    args += ["--frames", "4", "--no-progress"] if command == "dataset" else []
+    assert main([*args, *option]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"svcode {command}: error: {message}" in err, err
+    assert "_" not in err.split("error: ")[1].split(":")[0]
+    assert not (tmp_path / "out").exists()

@@ -178,6 +178,27 @@ def test_two_dask_workers_match_one_process(tiny_system, stack, tmp_path):
     print(f"2-worker dask run: {time.perf_counter() - start:.1f} s")
 
 
+def _sigint_handler() -> str:
+    import signal
+
+    return str(signal.getsignal(signal.SIGINT))
+
+
+def test_local_dask_workers_leave_ctrl_c_to_the_client():
+    """Ctrl-C reaches every process of the terminal's group: the local cluster's workers
+    ignore it (else each prints its traceback, above all while still importing), and this
+    process alone handles it."""
+    import signal
+
+    pytest.importorskip("distributed")
+    from svcode_core.run.parallel import dask_client
+
+    with dask_client(workers=1) as client:
+        handlers = client.run(_sigint_handler)
+    assert list(handlers.values()) == [str(signal.SIG_IGN)]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
 def _cli(argv):
     import argparse
 

@@ -31,7 +31,8 @@ def test_dataset_then_train(tiny_system, tiny_model_config, tmp_path, capsys):
     state = torch.load(run / "checkpoints" / "epoch-0001.pt", weights_only=True)
     assert json.loads(state["train_config"])["beta"] == 30.0
     assert main([*args, "--ssim-weight", "-1"]) == 2
-    assert "alpha" in capsys.readouterr().err
+    err = capsys.readouterr().err  # the option's name, not the field's (alpha)
+    assert "error: --ssim-weight: must be >= 0, got -1.0" in err and "alpha" not in err
     model, system = load_model(run / "best.safetensors", tiny_system)
     assert model.model_config.positional_encoding is False
     assert main([*args, "--resume"]) == 0  # nothing left to do, but it loads
@@ -106,3 +107,53 @@ def test_train_from_initial_weights(tiny_system, tiny_model_config, tmp_path, ca
     assert "leave out --model-config and --ablation" in capsys.readouterr().err
     assert main([*args, "--method", "fouriernet"]) == 2
     assert "not one for --method fouriernet" in capsys.readouterr().err
+
+
+def test_resume_names_a_damaged_file_and_what_to_do(tiny_system, tiny_model_config, tmp_path,
+                                                    capsys):
+    import os
+    import shutil
+
+    system_file = tiny_system.save(tmp_path / "tiny.json")
+    data = tmp_path / "data"
+    assert main(["dataset", "--system", str(system_file), "--frames", "2", "--out", str(data),
+                 "--seed", "1", "--val-fraction", "0.5", "--no-progress"]) == 0
+    model_file = tmp_path / "model.json"
+    model_file.write_text(tiny_model_config.to_json())
+    run = tmp_path / "run"
+    args = ["train", "--data", str(data), "--out", str(run), "--epochs", "1",
+            "--model-config", str(model_file), "--batch-size", "2", "--patches-per-epoch", "2",
+            "--val-patches", "2", "--device", "cpu", "--no-progress"]
+    assert main(args) == 0
+    capsys.readouterr()
+    shutil.copytree(data, tmp_path / "data.copy")
+    shutil.copytree(run, tmp_path / "run.copy")
+    checkpoints = run / "checkpoints"
+
+    def halve(path):
+        os.truncate(path, path.stat().st_size // 2)
+
+    damages = [
+        (checkpoints / "epoch-0001.pt", halve, "is damaged or truncated", "without --resume"),
+        (checkpoints / "epoch-0001.safetensors", halve, "is damaged or truncated",
+         "without --resume"),
+        (checkpoints / "latest.json", lambda p: p.write_text('{"epoch": '),
+         "is damaged (Expecting value", "without --resume"),
+        (checkpoints / "latest.json", lambda p: p.write_text('{"epoch": 1}'),
+         "is damaged (it does not name the checkpoint's weights", "without --resume"),
+        (data / "views.npy", halve, "is damaged or truncated", "svcode dataset"),
+        (data / "views.npy", lambda p: os.truncate(p, 50), "is damaged or truncated",
+         "svcode dataset"),
+        (data / "manifest.json", lambda p: p.write_text('{"fo'), "is damaged",
+         "svcode dataset"),
+    ]  # fmt: skip
+    for path, damage, fragment, advice in damages:
+        damage(path)
+        assert main([*args, "--resume"]) == 2, path
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "Traceback" not in err, err
+        assert f"svcode train: error: {path} {fragment}" in err and advice in err, err
+        for folder in (data, run):
+            shutil.rmtree(folder)
+            shutil.copytree(folder.with_name(folder.name + ".copy"), folder)
+    assert main([*args, "--resume"]) == 0  # restored: it resumes

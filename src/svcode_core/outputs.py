@@ -5,23 +5,44 @@ to the same file as) an input, two outputs that are one file, an output that is 
 directory, and a location where no file can be created. :class:`OutputLock` keeps two
 runs from writing the same output at once; :func:`temporary_sibling` names a unique
 temporary file beside an output for an atomic rename.
+
+Space: :func:`require_space` refuses, before the work, outputs of known size that do not
+fit on their file system, and :func:`preallocate` reserves a file's blocks, so that writes
+through a memory map of it cannot fail later (a full disk under a sparse memory map kills
+the process with SIGBUS, without a message). Both raise :class:`NoSpaceError`, whose
+message says where, how much is needed and how much is free.
 """
 
 from __future__ import annotations
 
 import errno
 import os
+import shutil
 import socket
 import time
 import uuid
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
-__all__ = ["OutputBusyError", "OutputLock", "check_outputs", "same_file", "temporary_sibling"]
+__all__ = [
+    "NoSpaceError",
+    "OutputBusyError",
+    "OutputLock",
+    "check_outputs",
+    "no_space",
+    "preallocate",
+    "require_space",
+    "same_file",
+    "temporary_sibling",
+]
 
 
 class OutputBusyError(OSError):
     """Another run is writing the same output."""
+
+
+class NoSpaceError(OSError):
+    """The outputs do not fit on their file system."""
 
 
 def same_file(a: Path, b: Path) -> bool:
@@ -108,6 +129,72 @@ def check_outputs(outputs: Files, inputs: Files) -> None:
                                  "give them different names")  # fmt: skip
     for label, path in named_outputs:
         _check_writable_location(label, path)
+
+
+def _mib(size: int) -> str:
+    return f"{size / 2**20:.1f}"
+
+
+def free_bytes(path: Path) -> int:
+    """Bytes free to this user on the file system that holds (or would hold) ``path``."""
+    return shutil.disk_usage(_existing_ancestor(Path(path) / "x")).free
+
+
+def no_space(folder: Path, needed: int) -> NoSpaceError:
+    """The error for ``needed`` bytes that do not fit in ``folder``, with the space free now."""
+    folder = _existing_ancestor(Path(folder) / "x")
+    return NoSpaceError(errno.ENOSPC, f"no space left on {folder}: {_mib(needed)} MiB needed, "
+                                      f"{_mib(free_bytes(folder))} MiB free")  # fmt: skip
+
+
+def require_space(needs: Mapping[Path, int]) -> None:
+    """Refuse files of known sizes that do not fit where they go.
+
+    Parameters
+    ----------
+    needs : mapping
+        Bytes still to be written, by the folder they go to; folders on one file system
+        are added up.
+
+    Raises
+    ------
+    NoSpaceError
+        For the first file system short of space.
+    """
+    by_device: dict[int, tuple[Path, int]] = {}
+    for folder, size in needs.items():
+        folder = _existing_ancestor(Path(folder) / "x")
+        device = os.stat(folder).st_dev
+        first, total = by_device.get(device, (folder, 0))
+        by_device[device] = (first, total + size)
+    for folder, total in by_device.values():
+        if total > free_bytes(folder):
+            raise no_space(folder, total)
+
+
+def preallocate(path: Path) -> None:
+    """Reserve the disk blocks of every byte of ``path`` (a file created sparse).
+
+    Raises
+    ------
+    NoSpaceError
+        If the file system cannot hold the file. Where the system or file system has no
+        preallocation, nothing is done.
+    """
+    fallocate = getattr(os, "posix_fallocate", None)
+    if fallocate is None:  # macOS, Windows
+        return
+    size = os.path.getsize(path)
+    fd = os.open(path, os.O_RDWR)
+    try:
+        fallocate(fd, 0, size)
+    except OSError as err:
+        if err.errno == errno.ENOSPC:
+            raise no_space(Path(path).parent, size) from None
+        if err.errno not in (errno.EINVAL, errno.EOPNOTSUPP, errno.ENOSYS):
+            raise
+    finally:
+        os.close(fd)
 
 
 def temporary_sibling(path: Path) -> Path:

@@ -4,21 +4,26 @@ Each sub-command module exposes ``add_parser(subparsers)`` (registers its argume
 sets ``func``) and is listed in :data:`COMMANDS`.
 
 Exit status: 0 on success; 2 for a user error (bad option or input, a file that is
-missing, unreadable or unwritable, an unavailable device), reported in one line on stderr
-(``--debug`` shows the traceback instead); 130 when interrupted (Ctrl-C); 1 with a
-traceback for anything else (a bug: please report it).
+missing, unreadable or unwritable, a full disk, an unavailable device), reported in one
+line on stderr (``--debug`` shows the traceback instead); 130 when interrupted (Ctrl-C),
+143 when terminated (SIGTERM, e.g. ``kill``): both release the output locks and keep an
+interrupted reconstruction's partial files, to resume; 1 with a traceback for anything else
+(a bug: please report it).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import signal
 import sys
+import threading
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 
-from ..config import SystemConfig, available_presets, load_system
+from ..config import ConfigError, SystemConfig, available_presets, load_system
 from ..run.allocator import reuse_freed_memory
 
 COMMANDS = ("simulate", "reconstruct", "demo", "dataset", "train", "bench", "calibrate")
@@ -40,6 +45,25 @@ def chosen_system(args: argparse.Namespace) -> SystemConfig | None:
     """The system of :func:`add_system_arguments`' options; ``None`` if neither is set."""
     choice = args.system or args.preset
     return load_system(choice) if choice else None
+
+
+@contextlib.contextmanager
+def in_option_words(options: Mapping[str, str]) -> Iterator[None]:
+    """Reword a :class:`~svcode_core.config.ConfigError` about one of ``options``' fields
+    (``"val_fraction: must ..."``) with the option's name (``"--val-fraction: must ..."``).
+
+    Parameters
+    ----------
+    options : mapping
+        Configuration field → command-line option.
+    """
+    try:
+        yield
+    except ConfigError as err:
+        field, colon, rest = str(err).partition(": ")
+        if not colon or field not in options:
+            raise
+        raise ConfigError(f"{options[field]}: {rest}") from None
 
 
 def build_parser(commands: Sequence[str] = COMMANDS) -> argparse.ArgumentParser:
@@ -100,18 +124,41 @@ def _check_device(args: argparse.Namespace) -> None:
         resolve_device(device)
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised like an interruption: every ``with`` and ``finally`` block runs."""
+
+
+@contextlib.contextmanager
+def _terminate_as_interrupt() -> Iterator[None]:
+    """SIGTERM raises :class:`Terminated` meanwhile (by default it ends the process at
+    once, leaving its output locks behind)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield  # only the main thread may change signal handlers
+        return
+
+    def terminate(signum, frame) -> None:
+        raise Terminated
+
+    previous = signal.signal(signal.SIGTERM, terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``svcode`` console script; returns the exit status.
 
     User errors (:class:`ValueError`, :class:`OSError`) become one line on stderr and exit
-    status 2, an interruption exits with 130; with ``--debug`` both raise. The process
+    status 2, an interruption exits with 130, SIGTERM with 143; with ``--debug`` they
+    raise. The process
     keeps freed memory for reuse (:func:`~svcode_core.run.allocator.reuse_freed_memory`).
     """
     argv = sys.argv[1:] if argv is None else argv
     args = build_parser(_commands_needed(argv)).parse_args(argv)
     reuse_freed_memory()
     debug = getattr(args, "debug", False)
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), _terminate_as_interrupt():
         warnings.showwarning = _one_line_warnings(args.command)
         try:
             _check_device(args)
@@ -121,8 +168,10 @@ def main(argv: list[str] | None = None) -> int:
                 raise
             print(f"svcode {args.command}: error: {describe_error(err)}", file=sys.stderr)
             return 2
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as err:
             if debug:
                 raise
-            print(f"svcode {args.command}: interrupted", file=sys.stderr)
-            return 130
+            terminated = isinstance(err, Terminated)
+            print(f"svcode {args.command}: {'terminated' if terminated else 'interrupted'}",
+                  file=sys.stderr)  # fmt: skip
+            return 143 if terminated else 130

@@ -58,6 +58,8 @@ def run(args: argparse.Namespace) -> int:
 
     The figure has one work–precision panel per regime.
     """
+    if args.threads < 1:
+        raise ValueError(f"--threads must be >= 1 (torch CPU threads), got {args.threads}")
     for path in [args.weights, *args.ablations, *args.learned]:
         if path is not None and not path.is_file():
             raise FileNotFoundError(f"weights not found: {path}")

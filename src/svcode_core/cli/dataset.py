@@ -8,7 +8,7 @@ from pathlib import Path
 from ..phantoms import KINDS
 from ..physics.departures import NAMED_SETS, load_departures
 from ..training import DataRecipe, generate_dataset
-from . import add_system_arguments, chosen_system
+from . import add_system_arguments, chosen_system, in_option_words
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -50,6 +50,10 @@ def run(args: argparse.Namespace) -> int:
     recipe = DataRecipe(frames=args.frames, seed=args.seed, val_fraction=args.val_fraction,
                         object_kind=args.objects, departures=departures,
                         instrument_frames=args.instrument_frames)
+    options = {field: "--" + field.replace("_", "-")
+               for field in ("frames", "seed", "val_fraction", "instrument_frames")}
+    with in_option_words(options):
+        recipe.validate()
     data = generate_dataset(args.out, system, recipe, progress=not args.no_progress)
     seconds = data.manifest["seconds"]
     print(f"{data}: simulation took {seconds:.1f} s in all "

@@ -12,8 +12,9 @@ from ..config import available_presets, load_system
 from ..evaluation.metrics import image_quality
 from ..io import write_tiff
 from ..methods.svcode import Reconstructor
+from ..outputs import check_outputs
 from ..phantoms import KINDS, make_object
-from ..physics.simulate import Simulator
+from ..physics.simulate import Simulator, scene_files
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -42,6 +43,9 @@ def run(args: argparse.Namespace) -> int:
     """Simulate, reconstruct, score, save the files and the picture."""
     from ..evaluation.figures import overview_figure  # matplotlib: only when drawing
 
+    files = [("--out", path) for path in scene_files(args.out).values()]
+    files += [("--out", args.out / name) for name in ("reconstruction.tif", "demo.png")]
+    check_outputs(files, {"--weights": args.weights})
     system = load_system(args.preset)
     if args.weights is not None:
         rec = Reconstructor.from_weights(args.weights, system, device=args.device)

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import math
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +21,7 @@ from ..methods.registry import (
     method,
 )
 from ..methods.svcode import DEFAULT_MASK_CACHE_BYTES
+from ..physics.scene_checks import check_system_geometry
 from ..pretrained import require_bundled_weights
 from ..run.stream import FrameReader, reconstruct_file
 
@@ -267,21 +270,70 @@ def _check_precision(args: argparse.Namespace) -> None:
                          f"{args.method}; it takes {', '.join(accepted)}")  # fmt: skip
 
 
-def _spec(args: argparse.Namespace, system: SystemConfig) -> MethodSpec:
-    """The picklable reconstructor recipe of ``args.method``."""
+def _finite(value: float) -> bool:
+    return math.isfinite(value)
+
+
+#: the numeric options' rules: ``args`` attribute → (accepts the value, what it must be)
+_VALUE_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
+    "workers": (lambda v: v >= 0, ">= 0 (processes; 0 runs in this process)"),
+    "input_scale": (lambda v: _finite(v) and v > 0, "a finite number > 0 (counts)"),
+    "tile": (lambda v: v >= 1, ">= 1 (pixels)"),
+    "stride": (lambda v: v >= 1, ">= 1 (pixels)"),
+    "batch_size": (lambda v: v >= 1, ">= 1 (tiles)"),
+    "mask_cache": (lambda v: v >= 0, ">= 0 (MiB; 0 recomputes the masks)"),
+    "pool_window": (lambda v: v >= 0, ">= 0 (pixels)"),
+    "refine_periphery": (lambda v: v >= 0, ">= 0 (iterations)"),
+    "rank": (lambda v: v >= 1, ">= 1"),
+    "memory_budget": (lambda v: _finite(v) and v > 0, "positive (GiB)"),
+    "iterations": (lambda v: v >= 1, ">= 1"),
+    "cg_iterations": (lambda v: v >= 1, ">= 1"),
+    "tv_weight": (lambda v: v == "auto" or _finite(v) and v >= 0, "a finite number >= 0 or auto"),
+    "rho": (lambda v: _finite(v) and v > 0, "a finite number > 0"),
+    "tolerance": (lambda v: _finite(v) and v >= 0, "a finite number >= 0"),
+    "wiener_balance": (lambda v: _finite(v) and v > 0, "a finite number > 0"),
+}
+
+
+def check_options(args: argparse.Namespace) -> None:
+    """Refuse, before any work, an option value out of range or an option that does not
+    apply to ``--method``; the messages name the options as given.
+
+    Raises
+    ------
+    ValueError
+        For the first such option.
+    """
+    for dest, (accepts, what) in _VALUE_RULES.items():
+        value = getattr(args, dest, None)
+        if value is not None and value is not False and not accepts(value):
+            flag = "--" + dest.replace("_", "-")
+            shown = f"{value:g}" if isinstance(value, float) else value
+            raise ValueError(f"{flag} must be {what}, got {shown}")
+    _check_precision(args)
     if args.method in MODEL_BASED_METHODS:
         _refuse_network_options(args, "it inverts the forward model, without tiles")
-        _check_precision(args)
-        options = {"device": args.device, "precision": args.precision, **baseline_options(args)}
-        return MethodSpec(args.method, system, options=options)
+        if args.weights is not None:
+            raise ValueError(f"--weights does not apply to --method {args.method}: it inverts "
+                             "the system's forward model, without a trained network")
+        baseline_options(args)
+        return
     _refuse_baseline_options(args)
-    _check_precision(args)
     if args.method in LEARNED_METHODS:
         if args.weights is None:
             raise ValueError(f"--method {args.method} needs --weights: no learned baseline is "
                              "bundled; train one with `svcode train --method "
                              f"{args.method}` (see the README)")  # fmt: skip
         _refuse_network_options(args, "it reconstructs the whole frame at once")
+
+
+def _spec(args: argparse.Namespace, system: SystemConfig) -> MethodSpec:
+    """The picklable reconstructor recipe of ``args.method`` (options checked by
+    :func:`check_options`)."""
+    if args.method in MODEL_BASED_METHODS:
+        options = {"device": args.device, "precision": args.precision, **baseline_options(args)}
+        return MethodSpec(args.method, system, options=options)
+    if args.method in LEARNED_METHODS:
         options = {"device": args.device, "precision": args.precision}
         return MethodSpec(args.method, system, str(args.weights), options)
     weights = args.weights if args.weights is not None else require_bundled_weights(system)
@@ -313,11 +365,9 @@ def _read_files(args: argparse.Namespace, spec) -> dict[str, Path | None]:
 
 def run(args: argparse.Namespace) -> int:
     """Reconstruct ``args.input`` into ``args.out``; print a one-line summary."""
-    if args.workers < 0:
-        raise ValueError(f"--workers must be >= 0, got {args.workers}")
-    if args.input_scale is not None and not 0 < args.input_scale < float("inf"):
-        raise ValueError(f"--input-scale must be a finite number > 0, got {args.input_scale}")
+    check_options(args)
     system = _system(args)
+    check_system_geometry(system)  # before --register's work too
     start = time.perf_counter()
     recorded: dict = {}
     if args.register:

@@ -4,14 +4,18 @@ from __future__ import annotations
 
 import argparse
 import time
+import warnings
 from pathlib import Path
 
-from ..outputs import check_outputs
+import numpy as np
+import tifffile
+
+from ..outputs import check_outputs, require_space
 from ..phantoms import KINDS, from_image, make_object
 from ..physics.cm2 import CM2Operator
 from ..physics.departures import NAMED_SETS, load_departures
-from ..physics.scene_checks import check_object
-from ..physics.simulate import Simulator, scene_files
+from ..physics.scene_checks import check_object, check_system_geometry
+from ..physics.simulate import Simulator, scene_bytes, scene_files
 from . import add_system_arguments, chosen_system
 
 
@@ -43,19 +47,39 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
+def _read_image(path: Path) -> np.ndarray:
+    """The pixels of ``--object PATH``; a colour image is taken as its luminance, with a
+    warning."""
+    if path.suffix.lower() in (".tif", ".tiff"):
+        image = tifffile.imread(path)
+    else:
+        import skimage.io
+
+        image = skimage.io.imread(path)
+    if image.ndim == 3 and image.shape[-1] in (3, 4):
+        warnings.warn(f"--object {path.name} is a colour image ({image.shape[-1]} channels): "
+                      "it is simulated as grey, from its luminance", UserWarning, stacklevel=2)
+    return image
+
+
 def run(args: argparse.Namespace) -> int:
     """Simulate and write the files; print a one-line summary."""
     if args.frames < 1:
         raise ValueError(f"--frames must be >= 1, got {args.frames}")
+    if args.memory_budget is not None and not 0 < args.memory_budget < float("inf"):
+        raise ValueError(f"--memory-budget must be a positive number of GiB, "
+                         f"got {args.memory_budget:g}")  # fmt: skip
     system = chosen_system(args)
+    check_system_geometry(system)
     size = system.sub_view_size
     image = Path(args.object) if args.object not in KINDS else None
     outputs = [("--out", path) for path in scene_files(args.out).values()]
     check_outputs(outputs, {"--object": image, "--system": args.system})
+    require_space({args.out: scene_bytes(system.sensor_shape, size, args.frames)})
     if image is None:
         obj = make_object(args.object, size, args.seed)
     elif image.is_file():
-        obj = from_image(image, size)
+        obj = from_image(_read_image(image), size)
         check_object(obj, str(image))
     else:
         raise ValueError(

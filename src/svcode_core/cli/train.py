@@ -22,7 +22,7 @@ from ..training.configs import (
     with_svcode_options,
 )
 from ..training.loss import EDGE_STRIP
-from . import add_system_arguments, chosen_system
+from . import add_system_arguments, chosen_system, in_option_words
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -113,6 +113,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
+#: the command-line option of each :class:`TrainConfig` field, for the messages
+_OPTION_OF_FIELD = {"alpha": "--ssim-weight", "beta": "--mse-weight"} | {
+    field: "--" + field.replace("_", "-")
+    for field in ("epochs", "batch_size", "lr", "min_lr_ratio", "warmup_steps", "grad_clip",
+                  "edge_weight", "ring_weight", "patches_per_epoch", "val_patches", "seed",
+                  "workers", "same_origin", "photon_range")
+}  # fmt: skip
+
+
 def initial_weights(args: argparse.Namespace, system: SystemConfig) -> tuple[Path, AnyModelConfig]:
     """The model file of ``--init`` (``pretrained``: the bundled model of ``system``) and
     its network configuration, checked against ``--method``; ``--model-config`` and
@@ -131,11 +140,6 @@ def initial_weights(args: argparse.Namespace, system: SystemConfig) -> tuple[Pat
 
 def run(args: argparse.Namespace) -> int:
     """Train (or resume) and print where the results are."""
-    data = TrainingData(args.data)
-    system = chosen_system(args)
-    if system is not None and system != data.system:
-        raise ValueError(f"the dataset {args.data} was simulated for system "
-                         f"{data.system.name!r}, which differs from {system.name!r}")
     config = TrainConfig(
         epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
         min_lr_ratio=args.min_lr_ratio, warmup_steps=args.warmup_steps, grad_clip=args.grad_clip,
@@ -145,6 +149,13 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed, workers=args.workers, same_origin=args.same_origin,
         photon_range=tuple(args.photon_range), normalise_exposure=args.normalise_exposure,
     )
+    with in_option_words(_OPTION_OF_FIELD):
+        config.validate()
+    data = TrainingData(args.data)
+    system = chosen_system(args)
+    if system is not None and system != data.system:
+        raise ValueError(f"the dataset {args.data} was simulated for system "
+                         f"{data.system.name!r}, which differs from {system.name!r}")
     device = torch.device(args.device)
     dist = init_distributed(device.type)
     if device.type == "cuda" and dist.active:

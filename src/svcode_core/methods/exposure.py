@@ -16,7 +16,6 @@ bead's image) does, and the level scales with the frame.
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
 
 __all__ = ["REFERENCE_LEVEL", "exposure_gain", "exposure_level"]
 
@@ -44,6 +43,8 @@ def exposure_level(frame: np.ndarray) -> float:
     >>> exposure_level(frame), exposure_level(0.25 * frame)
     (1.0, 0.25)
     """
+    from scipy import ndimage  # here: the command line's start-up does not need it
+
     values = np.asarray(frame, dtype=np.float32)
     plane = (1,) * (values.ndim - 2)
     brightest_neighbour = ndimage.maximum_filter(

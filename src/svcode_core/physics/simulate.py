@@ -7,6 +7,8 @@ nominal system's chief rays.
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import functools
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,8 +18,8 @@ import torch
 from tqdm.auto import tqdm
 
 from ..config import SystemConfig
-from ..io import write_json_atomic, write_tiff
-from ..outputs import OutputLock
+from ..io import atomic_path, write_json_atomic, write_tiff
+from ..outputs import NoSpaceError, OutputLock, free_bytes, no_space, require_space
 from .cm2 import CM2Operator
 from .departures import Departures, load_departures
 from .geometry import extract_sub_views, pad_sensor_frame
@@ -25,14 +27,24 @@ from .instrument import Instrument
 from .noise import SensorModel, apply_sensor_noise
 from .scene_checks import check_system_geometry
 
-__all__ = ["Simulation", "Simulator", "scene_files"]
+__all__ = ["Simulation", "Simulator", "scene_bytes", "scene_files"]
 
 SCENE_FILES = ("measurement.tif", "views.tif", "demixed.tif", "object.tif", "system.json")
+#: bytes allowed per scene file beyond its pixels (TIFF header, metadata)
+_HEADROOM = 1 << 16
 
 
 def scene_files(out_dir: str | Path) -> dict[str, Path]:
     """The files :meth:`Simulation.save` writes to ``out_dir``, by name."""
     return {name: Path(out_dir) / name for name in SCENE_FILES}
+
+
+def scene_bytes(sensor_shape: tuple[int, int], size: int, frames: int = 1) -> int:
+    """Bytes of the files :meth:`Simulation.save` writes for ``frames`` sensor frames and
+    sub-views of ``size`` (the TIFF headers and the JSON files rounded up)."""
+    height, width = sensor_shape
+    pixels = frames * height * width + (2 * 9 + 1) * size * size
+    return 4 * pixels + len(SCENE_FILES) * _HEADROOM
 
 
 @dataclass
@@ -69,20 +81,56 @@ class Simulation:
         With ``departures`` (the true instrument's), they are also recorded in every TIFF
         (key ``departures``) and written to ``departures.json``; ``system`` stays the
         nominal system a user would have.
+
+        The files appear together or not at all: a failure leaves none of them (and an
+        earlier scene in ``out_dir`` whole).
+
+        Raises
+        ------
+        NoSpaceError
+            Before writing, if the files do not fit on the disk (also when a write fails
+            for want of space).
         """
         out_dir = Path(out_dir)
+        require_space({out_dir: self.nbytes()})
+        created = not out_dir.exists()
         out_dir.mkdir(parents=True, exist_ok=True)
         if departures is not None:
             extra = {**(extra or {}), "departures": departures.to_dict()}
         files = scene_files(out_dir)
-        with OutputLock(out_dir / "scene"):  # one writer at a time: no mixed scenes
-            for name in ("measurement", "views", "demixed", "object"):
-                write_tiff(files[f"{name}.tif"], getattr(self, name), system, kind=name,
-                           extra=extra)  # fmt: skip
-            write_json_atomic(files["system.json"], system.to_dict())
-            if departures is not None:
-                departures.save(out_dir / "departures.json")
+        try:
+            with OutputLock(out_dir / "scene"):  # one writer at a time: no mixed scenes
+                self._write(files, system, extra, departures, out_dir / "departures.json")
+        except OSError as err:
+            if created:
+                with contextlib.suppress(OSError):
+                    out_dir.rmdir()  # made for this scene, and empty again
+            if isinstance(err, NoSpaceError):
+                raise
+            # a full disk, whether or not the writer said so ("N requested and M written")
+            if err.errno == errno.ENOSPC or free_bytes(out_dir) < self.nbytes():
+                raise no_space(out_dir, self.nbytes()) from None
+            raise
         return out_dir
+
+    def _write(self, files: dict[str, Path], system: SystemConfig, extra: dict | None,
+               departures: Departures | None, departures_path: Path) -> None:
+        """Write every file under a temporary name, then rename them all: a failure
+        (a full disk) leaves none of them, and an earlier scene there whole."""
+        with contextlib.ExitStack() as written:
+            for name in ("measurement", "views", "demixed", "object"):
+                partial = written.enter_context(atomic_path(files[f"{name}.tif"]))
+                write_tiff(partial, getattr(self, name), system, kind=name, extra=extra)
+            partial = written.enter_context(atomic_path(files["system.json"]))
+            write_json_atomic(partial, system.to_dict())
+            if departures is not None:
+                partial = written.enter_context(atomic_path(departures_path))
+                departures.save(partial)
+
+    def nbytes(self) -> int:
+        """Bytes of the files :meth:`save` writes (:func:`scene_bytes`)."""
+        frames = self.measurement.shape[0] if self.measurement.ndim == 3 else 1
+        return scene_bytes(self.measurement.shape[-2:], self.object.shape[-1], frames)
 
 
 class Simulator:

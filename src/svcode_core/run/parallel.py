@@ -31,6 +31,8 @@ from __future__ import annotations
 
 import contextlib
 import itertools
+import logging
+import signal
 import threading
 import uuid
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -214,14 +216,32 @@ def dask_client(workers: int = 0, scheduler: str | None = None) -> Iterator[Any]
     if workers < 1:
         raise ValueError(f"workers must be >= 1 for a local dask cluster, got {workers}")
     threads = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-    with (
-        LocalCluster(
+    with _sigint_ignored():
+        cluster = LocalCluster(
             n_workers=workers,
             threads_per_worker=1,
             processes=True,
             dashboard_address=None,
             env=threads,
-        ) as cluster,
-        Client(cluster) as client,
-    ):
+            silence_logs=logging.ERROR,  # no warnings of tasks cancelled by an interruption
+        )
+    with cluster, Client(cluster) as client:
         yield client
+
+
+@contextlib.contextmanager
+def _sigint_ignored() -> Iterator[None]:
+    """SIGINT ignored meanwhile, so that processes started meanwhile ignore it for good.
+
+    A Ctrl-C in the terminal goes to the whole process group: without this, each worker
+    process would print its own traceback (starting up, it is still importing); this
+    process alone handles it. A Ctrl-C while the workers start (seconds) is lost.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield  # only the main thread may change signal handlers
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.SIG_DFL if previous is None else previous)

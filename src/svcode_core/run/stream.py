@@ -5,24 +5,29 @@ Input frames are read one at a time (memory-mapped where the TIFF allows it), so
 
 Output and resume scheme
     The result is written as it goes into ``OUT.tif.partial``, an uncompressed TIFF created
-    at its final size and memory-mapped (likewise ``VIEWS.tif.partial``). After a frame is
-    written and flushed, its byte in ``OUT.tif.done.npy`` is set and flushed. The run's
-    settings (input file, size and modification time, system, method, options) are in
-    ``OUT.tif.resume.json``, written atomically once the partial files exist. A rerun with
-    the same settings reopens the partial files and computes only the frames not marked
-    done; every frame has its own slot, so a frame interrupted between its write and its
-    mark is simply written again into the same slot: nothing is lost or duplicated. When
-    every frame is done, the partial files are renamed to their final names and the
-    bookkeeping files removed. A rerun with different settings starts afresh.
+    at its final size, with its disk blocks reserved, and memory-mapped (likewise
+    ``VIEWS.tif.partial``). After a frame is written and flushed, its byte in
+    ``OUT.tif.done.npy`` is set and flushed. The run's settings (input file, size and
+    modification time, system, method, options) are in ``OUT.tif.resume.json``, written
+    atomically once the partial files exist. A rerun with the same settings reopens the
+    partial files and computes only the frames not marked done; every frame has its own
+    slot, so a frame interrupted between its write and its mark is simply written again
+    into the same slot: nothing is lost or duplicated. When every frame is done, the
+    partial files are renamed to their final names and the bookkeeping files removed. A
+    rerun with different settings starts afresh.
 
 Safety
     Before anything is computed, the outputs are checked (none may be an input or another
-    output, a directory, or in a place where no file can be created), every frame is read
-    once and checked (:func:`~svcode_core.methods.frames.finite_frame`: integer frames converted,
-    NaN/Inf and out-of-range frames refused) and, when reconstructing in this process, the
-    reconstructor is built. Each output is locked (``OUT.tif.lock``,
-    :class:`~svcode_core.outputs.OutputLock`) for the whole run, so a second run onto the
-    same file is refused instead of mixing its settings and pixels into the first's. A run
+    output, a directory, or in a place where no file can be created), the system is checked
+    (:func:`~svcode_core.physics.scene_checks.check_system_geometry`: refused if no chief
+    ray lies on the sensor), every frame is read once and checked
+    (:func:`~svcode_core.methods.frames.finite_frame`: integer frames converted, NaN/Inf
+    and out-of-range frames refused), each output is locked (``OUT.tif.lock``,
+    :class:`~svcode_core.outputs.OutputLock`, so a second run onto the same file is refused
+    instead of mixing its settings and pixels into the first's), the partial files are
+    created with their space reserved (a full disk is refused in one line,
+    :class:`~svcode_core.outputs.NoSpaceError`, instead of killing the run midway with
+    SIGBUS) and, when reconstructing in this process, the reconstructor is built. A run
     that fails with an error removes the partial and bookkeeping files it created; an
     interrupted one (Ctrl-C, ``kill``) keeps them, to resume.
 """
@@ -47,7 +52,8 @@ from ..config import N_LENSES, SystemConfig
 from ..io import METADATA_KEY, tiff_metadata, write_json_atomic
 from ..methods.base import check_frame_shape
 from ..methods.frames import finite_frame, require_frames
-from ..outputs import OutputLock, check_outputs
+from ..outputs import NoSpaceError, OutputLock, check_outputs, no_space, preallocate, require_space
+from ..physics.scene_checks import check_system_geometry
 from .parallel import Factory, FrameResult, dask_client, dask_frames, local_frames
 
 __all__ = ["FrameReader", "StreamSummary", "reconstruct_file"]
@@ -149,6 +155,10 @@ class StreamSummary:
     tiles_skipped: int = 0
 
 
+#: bytes allowed per output file beyond its pixels (TIFF header, metadata, alignment)
+_HEADROOM = 1 << 16
+
+
 def _sibling(path: Path, suffix: str) -> Path:
     return path.with_name(path.name + suffix)
 
@@ -242,12 +252,28 @@ class _ResumableOutput:
             arrays[kind].shape != self.shapes[kind] for kind in arrays
         ):
             return False
+        for path in (*map(self._partial, self._kinds()), self.done_path):
+            preallocate(path)  # already reserved, unless written by an older version
         self.done, self.arrays = done, arrays
         return True
+
+    def _needs(self) -> dict[Path, int]:
+        """Bytes of the files :meth:`_create` writes, by folder (the TIFF headers and the
+        metadata rounded up)."""
+        needs: dict[Path, int] = {}
+        for kind in self._kinds():
+            folder = self._partial(kind).parent
+            size = 4 * int(np.prod(self.shapes[kind])) + _HEADROOM
+            needs[folder] = needs.get(folder, 0) + size
+        folder = self.done_path.parent
+        needs[folder] = needs.get(folder, 0) + self.frames + 2 * _HEADROOM
+        return needs
 
     def _create(self) -> None:
         for path in (self.state_path, self.done_path):
             path.unlink(missing_ok=True)
+        needs = self._needs()
+        require_space(needs)
         for kind in self._kinds():
             target = self._partial(kind)
             target.parent.mkdir(parents=True, exist_ok=True)
@@ -258,10 +284,15 @@ class _ResumableOutput:
                 photometric="minisblack",
                 metadata={METADATA_KEY: {"kind": kind, **self.meta}},
             )
+            try:
+                preallocate(target)
+            except NoSpaceError:  # taken meanwhile by others: say what the whole run needs
+                raise no_space(target.parent, needs[target.parent]) from None
         self.done = np.lib.format.open_memmap(
             self.done_path, mode="w+", dtype=np.uint8, shape=(self.frames,)
         )
         self.done.flush()
+        preallocate(self.done_path)
         write_json_atomic(self.state_path, self.fingerprint)
 
     def pending(self) -> list[int]:
@@ -365,11 +396,12 @@ def reconstruct_file(
     Raises
     ------
     ValueError
-        Before any work: no system, wrong frame size, no frames, a bad frame, an output
-        that is an input or another output.
+        Before any work: no system, one whose chief rays all miss the sensor, wrong frame
+        size, no frames, a bad frame, an output that is an input or another output.
     OSError
         Before any work: an output that is a directory or cannot be written;
-        :class:`~svcode_core.outputs.OutputBusyError` when another run writes an output.
+        :class:`~svcode_core.outputs.OutputBusyError` when another run writes an output;
+        :class:`~svcode_core.outputs.NoSpaceError` when the outputs do not fit on the disk.
     """
     out_path = Path(out_path)
     views = Path(views_path) if views_path is not None else None
@@ -384,6 +416,7 @@ def reconstruct_file(
                 "(system.json); pass one (--system FILE or a preset name)"
             )
         check_frame_shape(reader.shape[-2:], system)
+        check_system_geometry(system)
         require_frames(len(reader), reader.path.name)
         beside = reader.path.with_name("system.json")
         read = {"input": reader.path, "the system.json beside the input":
@@ -395,7 +428,6 @@ def reconstruct_file(
             for target in (out_path, views):
                 if target is not None:
                     locks.enter_context(OutputLock(target))
-            local = None if scheduler or workers > 0 else factory()
             output = _ResumableOutput(
                 out_path,
                 views,
@@ -406,6 +438,7 @@ def reconstruct_file(
                 _fingerprint(reader, system, settings, views is not None),
             )
             try:
+                local = None if scheduler or workers > 0 else factory()
                 summary = _run(output, frames, factory if local is None else (lambda: local),
                                workers, scheduler, progress)  # fmt: skip
                 output.finish()

@@ -39,6 +39,7 @@ from tqdm.auto import tqdm
 
 from ..config import N_LENSES, ConfigError, SystemConfig, check_int, check_number
 from ..io import write_json_atomic
+from ..outputs import preallocate, require_space
 from ..phantoms import KINDS, make_object
 from ..physics.departures import Departures
 from ..physics.noise import SensorModel
@@ -206,7 +207,10 @@ class TrainingData:
         manifest_path = self.path / MANIFEST
         if not manifest_path.is_file():
             raise FileNotFoundError(f"not a training dataset (no {MANIFEST}): {self.path}")
-        self.manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
+        try:
+            self.manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
+        except ValueError as err:
+            raise ValueError(f"{manifest_path} is damaged ({err}): {_REGENERATE}") from None
         if self.manifest.get("format") != DATA_FORMAT:
             raise ValueError(f"{manifest_path}: not an SV-CoDe training dataset ({DATA_FORMAT})")
         self.system = SystemConfig.load(self.path / SYSTEM)
@@ -214,7 +218,7 @@ class TrainingData:
         if count < frames and not allow_partial:
             raise ValueError(f"{self.path}: only {count} of {frames} frames were generated; "
                              "rerun `svcode dataset` with the same arguments to finish it")
-        arrays = {name: np.load(self.path / f"{name}.npy", mmap_mode="r") for name in _ARRAYS}
+        arrays = {name: _open_array(self.path / f"{name}.npy", count) for name in _ARRAYS}
         self.views, self.demixed, self.objects = (arrays[n][:count] for n in _ARRAYS)
         self.train_frames = [i for i in self.manifest["train_frames"] if i < count]
         self.val_frames = [i for i in self.manifest["val_frames"] if i < count]
@@ -254,7 +258,28 @@ class TrainingData:
                 f"{len(self.train_frames)} train / {len(self.val_frames)} val)")
 
 
+#: what to do about a damaged dataset
+_REGENERATE = "generate the dataset again with `svcode dataset` (into a new --out folder)"
+
+
+def _open_array(path: Path, count: int) -> np.ndarray:
+    """The memory map of one array of a dataset, which must hold ``count`` frames; a
+    missing, damaged or truncated file is refused in one line that names it."""
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} is missing: {_REGENERATE}")
+    try:
+        array = np.load(path, mmap_mode="r")
+    except (ValueError, OSError, EOFError) as err:
+        raise ValueError(f"{path} is damaged or truncated ({err}): {_REGENERATE}") from None
+    if array.ndim < 1 or len(array) < count:
+        raise ValueError(f"{path} holds {len(array) if array.ndim else 0} frames, the "
+                         f"manifest {count}: {_REGENERATE}")  # fmt: skip
+    return array
+
+
 def _open_arrays(path: Path, shapes: dict[str, tuple[int, ...]], create: bool) -> dict:
+    """The dataset's arrays, memory-mapped; new ones are created with their disk space
+    reserved (a full disk is refused at the start, not met as a SIGBUS halfway)."""
     mode = "w+" if create else "r+"
     arrays = {}
     for name, shape in shapes.items():
@@ -264,6 +289,8 @@ def _open_arrays(path: Path, shapes: dict[str, tuple[int, ...]], create: bool) -
         if array.shape != shape or array.dtype != np.float32:
             raise ValueError(f"{path / f'{name}.npy'} has shape {array.shape} {array.dtype}, "
                              f"expected {shape} float32")
+        if create:
+            preallocate(path / f"{name}.npy")
         arrays[name] = array
     return arrays
 
@@ -301,7 +328,6 @@ def generate_dataset(
     system = system.validate()
     recipe = recipe.validate()
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     manifest_path = out / MANIFEST
     size = system.sub_view_size
     shapes = {
@@ -309,6 +335,9 @@ def generate_dataset(
         "demixed": (recipe.frames, N_LENSES, size, size),
         "objects": (recipe.frames, size, size),
     }
+    if not manifest_path.is_file():
+        require_space({out: sum(4 * int(np.prod(shape)) + 4096 for shape in shapes.values())})
+    out.mkdir(parents=True, exist_ok=True)
     if manifest_path.is_file():
         manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
         stored_system = SystemConfig.load(out / SYSTEM)

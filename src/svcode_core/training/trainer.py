@@ -186,6 +186,30 @@ class _WarmupCosine:
         return self.floor + (1 - self.floor) * 0.5 * (1 + math.cos(math.pi * progress))
 
 
+#: what to do about a damaged checkpoint
+_RESTART = ("restore the checkpoint files from a copy, or train again without --resume "
+            "(into a new --out folder to keep this one)")
+
+#: the keys of a checkpoint's state file
+_STATE_KEYS = ("epoch", "global_step", "optimizer", "scheduler", "torch_rng", "cuda_rng",
+               "history", "step_losses", "best", "model_config", "train_config")
+
+
+def _read_checkpoint(path: Path, read: Callable[[Path], Any]) -> Any:
+    """``read(path)`` of a checkpoint file; a damaged or truncated one is refused in one
+    line that names it and says what to do (a missing one is a :class:`FileNotFoundError`)."""
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} is missing: {_RESTART}")
+    try:
+        data = read(path)
+    except Exception as err:  # zip, pickle, safetensors: each library raises its own
+        reason = " ".join(str(err).split(". ")[0].split()) or type(err).__name__
+        raise ValueError(f"{path} is damaged or truncated ({reason}): {_RESTART}") from None
+    if path.suffix == ".pt" and not (isinstance(data, dict) and set(_STATE_KEYS) <= set(data)):
+        raise ValueError(f"{path} is not a checkpoint state of this trainer: {_RESTART}")
+    return data
+
+
 def _atomic_write(path: Path, write: Callable[[Path], Any]) -> None:
     with atomic_path(path) as partial:
         write(partial)
@@ -485,10 +509,10 @@ class Trainer:
         _atomic_write(weights, lambda tmp: save_model(tmp, self.model, self.system,
                                                       {"epoch": self.epoch}))
         _atomic_write(state_path, lambda tmp: torch.save(state, tmp))
-        previous = self._latest()
+        previous = self._latest(strict=False)  # a damaged one is replaced here
         write_text_atomic(folder / LATEST, json.dumps(
             {"epoch": self.epoch, "weights": weights.name, "state": state_path.name}) + "\n")
-        if previous is not None and previous["epoch"] != self.epoch:
+        if previous is not None and previous.get("epoch") != self.epoch:
             for key in ("weights", "state"):
                 (folder / previous[key]).unlink(missing_ok=True)
         return weights
@@ -511,9 +535,22 @@ class Trainer:
             raise ValueError(f"{path}: its weights do not fit this dataset's system: "
                              f"{str(error).splitlines()[-1].strip()}") from error
 
-    def _latest(self) -> dict[str, Any] | None:
+    def _latest(self, strict: bool = True) -> dict[str, Any] | None:
+        """``latest.json`` (``None`` if there is none); a damaged one raises
+        :class:`ValueError`, or with ``strict=False`` counts as none."""
         path = self.out / CHECKPOINTS / LATEST
-        return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else None
+        if not path.is_file():
+            return None
+        try:
+            latest = json.loads(path.read_text(encoding="utf-8"))
+            if not all(isinstance(latest.get(key), str) for key in ("weights", "state")):
+                raise ValueError("it does not name the checkpoint's weights and state files")
+        except (ValueError, AttributeError) as err:  # (UnicodeDecodeError is a ValueError)
+            if not strict:
+                return None
+            reason = str(err) if isinstance(err, ValueError) else "not a JSON object"
+            raise ValueError(f"{path} is damaged ({reason}): {_RESTART}") from None
+        return latest
 
     def load_checkpoint(self) -> int:
         """Restore the latest checkpoint of the run folder; returns its epoch.
@@ -529,7 +566,8 @@ class Trainer:
         if latest is None:
             raise FileNotFoundError(f"no checkpoint to resume from in {self.out / CHECKPOINTS}")
         folder = self.out / CHECKPOINTS
-        state = torch.load(folder / latest["state"], map_location="cpu", weights_only=True)
+        state = _read_checkpoint(folder / latest["state"], lambda path: torch.load(
+            path, map_location="cpu", weights_only=True))  # fmt: skip
         for key, config in (("model_config", self.model_config), ("train_config", self.config)):
             stored = _with_defaults(config, json.loads(state[key]))
             current = json.loads(json.dumps(config.to_dict()))
@@ -539,7 +577,8 @@ class Trainer:
                 raise ValueError(f"the checkpoint in {folder} was written with another "
                                  f"{key.replace('_', ' ')} (differs in {differing}); resume "
                                  "with the original settings or start a new run folder")
-        weights = load_file(str(folder / latest["weights"]), device=str(self.device))
+        weights = _read_checkpoint(folder / latest["weights"],
+                                   lambda path: load_file(str(path), device=str(self.device)))
         self.model.load_state_dict(weights, strict=True)
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
