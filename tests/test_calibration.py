@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -15,7 +17,13 @@ from svcode_core.physics.cm2 import CM2Operator
 from svcode_core.physics.departures import Departures
 from svcode_core.physics.instrument import departed_system
 from svcode_core.physics.psf_io import load_measured_psfs, positions_path
-from svcode_core.physics.scan import scan_grid, simulate_scan, with_dark_offset, write_positions
+from svcode_core.physics.scan import (
+    bead_object,
+    scan_grid,
+    simulate_scan,
+    with_dark_offset,
+    write_positions,
+)
 from svcode_core.physics.simulate import Simulator
 
 #: Larger than the ``calibration`` set (scaled to the tiny system's 1-px Airy radius it
@@ -35,6 +43,19 @@ def scan(tiny_system):
     positions = scan_grid(system, 7)
     frames, dark = simulate_scan(simulator, positions, seed=1)
     # a tighter tolerance than the truth's own (1e-2): its PSFs are already of low rank
+    calibration = calibrate(frames, positions, system, dark=dark, tolerance=TOLERANCE)
+    return system, simulator, positions, frames, dark, calibration
+
+
+@pytest.fixture(scope="module")
+def stage_scan(tiny_system):
+    """A 7×7 scan of the tiny system through DEPARTURES at positions a stage gives: a
+    raster off the pixel centres by (0.4, -0.3) px, each position a little off its own."""
+    system = with_dark_offset(tiny_system, BLACK_LEVEL)
+    simulator = Simulator(system, departures=DEPARTURES)
+    jitter = np.random.default_rng(0).uniform(-0.1, 0.1, (49, 2))
+    positions = np.clip(scan_grid(system, 7) + (0.4, -0.3) + jitter, 0, system.sub_view_size - 1)
+    frames, dark = simulate_scan(simulator, positions, seed=1)
     calibration = calibrate(frames, positions, system, dark=dark, tolerance=TOLERANCE)
     return system, simulator, positions, frames, dark, calibration
 
@@ -86,24 +107,158 @@ def test_psfs_and_frames_reproduce_the_departed_instrument(scan):
     assert calibration.brightness == pytest.approx(1.0, abs=0.02)
 
 
+def test_sub_pixel_positions_recover_the_drift(stage_scan):
+    system, simulator, positions, frames, dark, calibration = stage_scan
+    truth = DEPARTURES.lens_offsets(system)
+    error = np.abs(calibration.offsets - truth).max()
+    # rounded to whole pixels (all a positions file could hold before), the raster's
+    # (0.4, -0.3) px offset goes into the array shift
+    rounded = calibrate(frames, np.rint(positions), system, dark=dark, tolerance=TOLERANCE)
+    assert error < 0.2 < 0.35 < np.abs(rounded.offsets - truth).max()
+    np.testing.assert_allclose(calibration.array_shift, DEPARTURES.mla_shift_px, atol=0.1)
+    assert np.abs(rounded.array_shift - DEPARTURES.mla_shift_px).max() > 0.25
+    # the fitted chief rays predict the spots better (those of the rounded positions are
+    # not where the frames have them)
+    assert calibration.residual_rms.mean() < 0.85 * rounded.residual_rms.mean()
+    # the PSFs, moved back to whole pixels, make a forward model of a scene it never saw
+    # (the tiny system's 1-px Airy core is too coarsely sampled to move exactly: 7 %)
+    from svcode_core.phantoms import make_object
+
+    size = system.sub_view_size
+    _, black = simulate_scan(simulator, positions[:1], noise=False, dark_frames=1)
+    obj = make_object("cells", size, 0)
+    frame = simulator.simulate(obj, noise=False).measurement - black[0]
+    x = torch.as_tensor(obj, dtype=torch.float64)
+    fitted, whole = (_relative(CM2Operator.from_psfs(cal.system, cal.psfs, dtype=torch.float64)
+                               .measure(x).numpy(), frame) for cal in (calibration, rounded))
+    assert fitted < 0.09 and fitted < 0.6 * whole
+
+
+def test_micrometre_positions_through_the_command(stage_scan, tmp_path, capsys):
+    system, _, positions, frames, dark, calibration = stage_scan
+    nominal = system.save(tmp_path / "nominal.json")
+    write_tiff(tmp_path / "scan.tif", frames, system, kind="scan")
+    write_tiff(tmp_path / "dark.tif", dark, system, kind="dark")
+    centre = system.sub_view_size // 2
+    pixel_size = 2.5  # um per object pixel
+    y, x = ((positions - centre) * pixel_size).T
+    lines = [f"{a:.4f},{b:.4f}" for a, b in zip(x, y, strict=True)]
+    (tmp_path / "pos.csv").write_text("x_um,y_um\n" + "\n".join(lines) + "\n")
+    out = tmp_path / "cal"
+    assert main(["calibrate", str(tmp_path / "scan.tif"), "--positions",
+                 str(tmp_path / "pos.csv"), "--pixel-size", str(pixel_size), "--system",
+                 str(nominal), "--dark", str(tmp_path / "dark.tif"), "--out", str(out)]) == 0
+    assert "calibrated tiny from 49 frames" in capsys.readouterr().out
+    saved = json.loads((out / "calibration.json").read_text())
+    np.testing.assert_allclose(saved["offsets_px"], calibration.offsets, atol=1e-3)
+    # without the pixel size: one line naming the file's header
+    assert main(["calibrate", str(tmp_path / "scan.tif"), "--positions",
+                 str(tmp_path / "pos.csv"), "--system", str(nominal), "--out", str(out)]) != 0
+    error = capsys.readouterr().err
+    assert "pos.csv line 1: positions in micrometres" in error and "--pixel-size" in error
+    assert error.count("\n") == 1
+
+
+def test_a_shuffled_scan_gives_the_same_calibration(stage_scan):
+    system, _, positions, frames, dark, calibration = stage_scan
+    order = np.random.default_rng(1).permutation(len(positions))
+    shuffled = calibrate(frames[order], positions[order], system, dark=dark,
+                         tolerance=TOLERANCE)  # fmt: skip
+    assert shuffled.system == calibration.system
+    for name in ("offsets", "offset_errors", "psfs", "throughput"):
+        np.testing.assert_allclose(getattr(shuffled, name), getattr(calibration, name),
+                                   rtol=1e-9, atol=1e-12, err_msg=name)  # fmt: skip
+    # the spots stay with their frames
+    np.testing.assert_array_equal(shuffled.centroids, calibration.centroids[order])
+
+
+def test_repeated_frames_are_averaged(scan):
+    system, _, positions, frames, dark, calibration = scan
+    # two frames of every position whose mean is the scan's frame: the same calibration
+    wobble = np.random.default_rng(2).normal(0.0, 1e-4, frames.shape)
+    twice = np.concatenate([frames + wobble, frames - wobble])
+    repeated = calibrate(twice, np.concatenate([positions, positions]), system, dark=dark,
+                         tolerance=TOLERANCE)  # fmt: skip
+    assert repeated.system == calibration.system
+    for name in ("offsets", "offset_errors", "psfs", "throughput"):
+        np.testing.assert_allclose(getattr(repeated, name), getattr(calibration, name),
+                                   rtol=1e-6, atol=1e-9, err_msg=name)  # fmt: skip
+    assert repeated.brightness == pytest.approx(calibration.brightness, rel=1e-9)
+    # one frame's noise: the mean of two has sqrt(2) less
+    assert repeated.noise_sigma == pytest.approx(calibration.noise_sigma * np.sqrt(2), rel=1e-6)
+    assert repeated.centroids.shape == (98, 9, 2)
+    np.testing.assert_array_equal(repeated.centroids[49:], repeated.centroids[:49])
+    # an error names every frame of the position
+    empty = twice.copy()
+    empty[[7, 56]] = dark[0]
+    with pytest.raises(CalibrationError, match=r"frames 7, 56 \(averaged\): no spot"):
+        calibrate(empty, np.concatenate([positions, positions]), system, dark=dark)
+
+
+def test_simulated_bead_between_pixels():
+    np.testing.assert_array_equal(bead_object(8, (2, 5)), np.eye(8)[2][:, None] * np.eye(8)[5])
+    # between pixels, its image through a smooth blur is centred on the position
+    from scipy import ndimage
+
+    rows, cols = np.mgrid[:64, :64]
+    window = (slice(18, 45), slice(8, 35))
+    for position in [(30.25, 20.5), (31.4, 19.7)]:
+        image = ndimage.gaussian_filter(bead_object(64, position).astype(np.float64), 2.0)
+        centre = [(image[window] * axis[window]).sum() / image[window].sum()
+                  for axis in (rows, cols)]
+        np.testing.assert_allclose(centre, position, atol=1e-3)
+
+
 def test_positions_csv(tmp_path):
-    path = write_positions(tmp_path / "pos.csv", np.array([[0, 1], [2, 3]]))
-    np.testing.assert_array_equal(read_positions(path), [[0, 1], [2, 3]])
-    path.write_text("row,col\n0,1\n2.5,3\n")
-    with pytest.raises(CalibrationError, match=r"line 3 \(frame 1\).*whole pixel"):
-        read_positions(path)
-    path.write_text("x,y\n0,1\n")
-    with pytest.raises(CalibrationError, match="header 'row,col'"):
-        read_positions(path)
+    path = tmp_path / "pos.csv"
+    written = np.array([[0, 1], [2.5, 3.125], [47, 0.000001]])
+    np.testing.assert_array_equal(read_positions(write_positions(path, written)), written)
+    assert path.read_text().splitlines()[:3] == ["row,col", "0,1", "2.5,3.125"]
+    path.write_text("0,1\n2.5,3\n")  # no header: row,col
+    np.testing.assert_array_equal(read_positions(path), [[0, 1], [2.5, 3]])
+    path.write_text("Col , Row\n0,1\n\n2.5,3\n")
+    np.testing.assert_array_equal(read_positions(path), [[1, 0], [3, 2.5]])
+    # micrometres from the field's centre, pixel (24, 24) of the tiny system's 48×48 grid
+    path.write_text("x_um,y_um\n0,0\n-5,7.5\n")
+    np.testing.assert_array_equal(read_positions(path, 2.5, size=48), [[24, 24], [27, 22]])
+    path.write_text("y_um,x_um\n7.5,-5\n")
+    np.testing.assert_array_equal(read_positions(path, 2.5, size=48), [[27, 22]])
+
+
+@pytest.mark.parametrize(("text", "options", "message"), [
+    ("row,col\n0,1\n2,abc\n", {}, r"pos.csv line 3: 'abc' is not a number"),
+    ("row,col\n0,1\nnan,3\n", {}, r"pos.csv line 3: 'nan' is not a number"),
+    ("row,col\n0,1\n2,3,4\n", {}, r"pos.csv line 3: expected 2 values row,col, got 3"),
+    ("0,1\n2\n", {}, r"pos.csv line 2: expected 2 values row,col, got 1"),
+    ("x,y\n0,1\n", {}, r"pos.csv line 1: unknown header 'x,y'"),
+    ("row,col,z\n0,1,2\n", {}, r"pos.csv line 1: unknown header 'row,col,z'"),
+    ("x_um,y_um\n0,0\n", {"size": 48}, r"pos.csv line 1: positions in micrometres"),
+    ("row,col\n0,1\n\n2,48\n", {"size": 48},
+     r"pos.csv line 4: position \(2, 48\) lies outside the 48×48 object grid"),
+    ("row,col\n0,-0.5\n", {"size": 48}, r"pos.csv line 2: position \(0, -0.5\) lies outside"),
+    ("x_um,y_um\n0,0\n61,0\n", {"size": 48, "pixel_size": 2.5},
+     r"pos.csv line 3: position \(24, 48.4\) \(x_um,y_um = 61,0\) lies outside"),
+    ("row,col\n0,1\n2,3\n", {"frames": 3},
+     r"pos.csv: 2 positions for 3 frames: frame 2 has no position \(the last is on line 3\)"),
+    ("row,col\n0,1\n2,3\n", {"frames": 1}, r"pos.csv line 3: more positions than the 1 "),
+    ("row,col\n", {}, r"pos.csv: no positions after the header line 1"),
+    ("\n", {}, r"pos.csv: no positions"),
+])  # fmt: skip
+def test_bad_positions_files_name_the_line(tmp_path, text, options, message):
+    path = tmp_path / "pos.csv"
+    path.write_text(text)
+    with pytest.raises(CalibrationError, match=message) as error:
+        read_positions(path, **options)
+    assert "\n" not in str(error.value)
 
 
 def test_bad_scans_name_the_frame(scan):
     system, _, positions, frames, dark, _ = scan
     with pytest.raises(CalibrationError, match="49 frames but the positions list 48: frame 48"):
         calibrate(frames, positions[:-1], system, dark=dark)
-    outside = positions.copy()
-    outside[5] = (3, 48)
-    with pytest.raises(CalibrationError, match=r"frame 5: position \(3, 48\) lies outside"):
+    outside = positions.astype(float)
+    outside[5] = (3, 47.5)
+    with pytest.raises(CalibrationError, match=r"frame 5: position \(3, 47.5\) lies outside"):
         calibrate(frames, outside, system, dark=dark)
     empty = frames.copy()
     empty[7] = dark[0]
@@ -201,7 +356,7 @@ def test_progress_is_reported_in_order_and_can_stop_the_calibration(scan):
     fractions = [fraction for _, fraction in calls]
     assert fractions == sorted(fractions) and fractions[0] == 0.0 and fractions[-1] == 1.0
     stages = [stage for stage, _ in calls]
-    assert f"finding spots: frame {len(frames)} of {len(frames)}" in stages
+    assert f"finding spots: position {len(frames)} of {len(frames)}" in stages
     assert "fitting the PSFs: lens 9 of 9" in stages
 
     class Stop(Exception):

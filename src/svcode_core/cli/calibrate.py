@@ -27,8 +27,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("scan", type=Path, metavar="SCAN.tif", help="N×H×W raw frames")
     parser.add_argument("--positions", type=Path, required=True, metavar="POS.csv",
-                        help="header 'row,col', then the source position of each frame in "
-                        "whole pixels of the S×S object grid")  # fmt: skip
+                        help="the source position of each frame, in the scan's order: "
+                        "header 'row,col' then object pixels (fractions allowed), or "
+                        "header 'x_um,y_um' then stage micrometres from the field's centre "
+                        "(needs --pixel-size); the frames of a repeated position are "
+                        "averaged")  # fmt: skip
+    parser.add_argument("--pixel-size", type=float, metavar="UM",
+                        help="object-space pixel size in micrometres (sensor pixel over "
+                        "magnification), for positions in micrometres")  # fmt: skip
     add_system_arguments(parser, default=None,
                          preset_help="nominal system preset (sensor, grid, starting values)")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
@@ -56,7 +62,8 @@ def run(args: argparse.Namespace) -> int:
     frames = np.asarray(frames)
     if frames.ndim == 2:
         frames = frames[None]
-    positions = read_positions(args.positions)
+    positions = read_positions(args.positions, args.pixel_size, size=nominal.sub_view_size,
+                               frames=len(frames))  # fmt: skip
     dark = None if args.dark is None else np.asarray(read_tiff(args.dark)[0])
     start = time.perf_counter()
     calibration = calibrate(frames, positions, nominal, dark=dark, tolerance=args.tolerance,

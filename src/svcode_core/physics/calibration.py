@@ -1,11 +1,16 @@
 """Calibrate a CM² instrument from a point-source scan.
 
 A lab records a **point-source scan**: a bead or pinhole at ``N`` object positions
-``p_n`` (whole pixels of the ``S × S`` object grid), one raw frame each. Lens ``ℓ`` images
-the source to the padded-sensor point ``c_ℓ - S//2 + p_n`` blurred by its PSF at ``p_n``
-(:mod:`svcode_core.config`). :func:`calibrate` turns the scan into a system:
+``p_n`` (pixels of the ``S × S`` object grid, fractions allowed: a stage does not stop on
+pixel centres), one raw frame each, in any order; the frames of a position recorded more
+than once are averaged first. Lens ``ℓ`` images the source to the padded-sensor point
+``c_ℓ - S//2 + p_n`` blurred by its PSF at ``p_n`` (:mod:`svcode_core.config`).
+The operator's PSFs are images of a source on a whole object pixel, so the frame of a
+source a fraction ``f_n = p_n - q_n`` off its nearest pixel ``q_n`` is first moved back by
+``-f_n`` (a Fourier shift, :func:`_subpixel_shift`): it is then the frame of a source on
+``q_n`` with the PSFs of ``p_n``. :func:`calibrate` turns the scan into a system:
 
-1. **Spots**: per frame, the local maxima of the frame smoothed over an Airy core
+1. **Spots**: per position, the local maxima of the frame smoothed over an Airy core
    (:func:`skimage.feature.peak_local_max`) above a threshold derived from the noise
    (median absolute deviation of the frames) are assigned to the lens whose nominal
    image point lies within half a lens pitch.
@@ -15,13 +20,13 @@ the source to the padded-sensor point ``c_ℓ - S//2 + p_n`` blurred by its PSF 
    (mean) value over its spots, then split, again by least squares, into an array
    translation, an array rotation about the lattice centre and per-lens residuals. The
    nominal PSF at ``p_n`` is the one the operator uses: the grid PSFs interpolated.
-3. **PSFs**: the ``k × k`` window at ``round(c_ℓ) - S//2 + p_n`` of every frame is the
-   registered PSF of lens ``ℓ`` at ``p_n`` (the sub-pixel part of the chief ray stays in
-   it, as in :mod:`svcode_core.physics.instrument`). The PSFs on the ``G × G`` grid are fitted to
-   them by least squares through the same cubic interpolation the low-rank operator uses
-   (:func:`svcode_core.physics.lowrank.interpolation_basis`), pixel by pixel over the pixels that
-   are on the sensor, with a weak prior towards the nominal model for grid nodes the scan
-   does not reach.
+3. **PSFs**: the ``k × k`` window at ``round(c_ℓ) - S//2 + q_n`` of every moved frame is
+   the registered PSF of lens ``ℓ`` at ``p_n`` (the sub-pixel part of the chief ray stays
+   in it, as in :mod:`svcode_core.physics.instrument`). The PSFs on the ``G × G`` grid are
+   fitted to them by least squares through the same cubic interpolation the low-rank
+   operator uses (:func:`svcode_core.physics.lowrank.interpolation_basis`, here at
+   ``p_n``), pixel by pixel over the pixels that are on the sensor, with a weak prior
+   towards the nominal model for grid nodes the scan does not reach.
 4. **Vignetting**: the throughput (sum) of every grid PSF, relative to the nominal
    model's total; the bead's brightness, unknown, is set so the measured stack's total
    equals the nominal one on the spots both see.
@@ -44,7 +49,7 @@ from scipy.stats import median_abs_deviation, norm
 from skimage.feature import peak_local_max
 
 from ..config import N_LENSES, SystemConfig
-from .lowrank import decompose_psfs, interpolation_basis
+from .lowrank import decompose_psfs
 from .optics import system_psfs
 
 __all__ = [
@@ -62,6 +67,10 @@ __all__ = [
 #: of a grid node: enough to fix nodes the scan does not reach, a 1 % pull elsewhere.
 PRIOR_WEIGHT = 1e-2
 
+#: Rows and columns at each sensor edge left out of the PSF fit in a frame moved by a
+#: sub-pixel shift: the interpolation there reaches past the sensor.
+SHIFT_MARGIN = 2
+
 #: ``progress(stage, fraction)``: what :func:`calibrate` is doing and the fraction done.
 Progress = Callable[[str, float], None]
 
@@ -71,46 +80,130 @@ class CalibrationError(ValueError):
 
 
 # ------------------------------------------------------------------- inputs
-def read_positions(path: str | Path) -> np.ndarray:
+#: Header names of a positions file: columns in object pixels, and in micrometres (``y``
+#: along the rows, ``x`` along the columns); each name gives its axis, 0 row, 1 column.
+PIXEL_COLUMNS = {"row": 0, "col": 1}
+MICROMETRE_COLUMNS = {"y_um": 0, "x_um": 1}
+
+
+def read_positions(path: str | Path, pixel_size: float | None = None, *,
+                   size: int | None = None, frames: int | None = None) -> np.ndarray:  # fmt: skip
     """Read the source positions of a scan from a CSV file.
+
+    One line per frame of the scan, in the scan's order (any order of positions; a
+    position on several lines: its frames are averaged by :func:`calibrate`). A header
+    line names the two columns:
+
+    * ``row,col`` (or ``col,row``): object pixels of the ``S × S`` grid, fractions
+      allowed (a bead is rarely centred on a pixel); a file without a header is read as
+      ``row,col``;
+    * ``x_um,y_um`` (or ``y_um,x_um``): stage micrometres from the centre of the object
+      field, object pixel ``(S//2, S//2)``, the point each lens images on its chief ray;
+      ``x`` runs along the columns, ``y`` along the rows. Needs ``pixel_size`` and ``size``.
 
     Parameters
     ----------
     path : str or Path
-        A header line ``row,col``, then one ``row,col`` line per frame: the source
-        position in whole pixels of the ``S × S`` object grid.
+        The CSV file.
+    pixel_size : float, optional
+        Object-space pixel size in micrometres (sensor pixel over magnification).
+    size : int, optional
+        ``S``: positions are checked to lie on the grid, pixels 0 to ``S - 1``.
+    frames : int, optional
+        Frames in the scan: the file must give exactly one position per frame.
 
     Returns
     -------
     numpy.ndarray
-        ``(N, 2)`` int64 positions.
+        ``(N, 2)`` float64 ``(row, col)`` positions in object pixels.
 
     Raises
     ------
     CalibrationError
-        On a missing header, a line that is not two whole numbers (naming the line).
+        One line naming the file and the line at fault: an unknown header, a line that
+        is not two numbers, micrometres without a pixel size, a position off the grid,
+        fewer or more positions than frames.
+
+    Examples
+    --------
+    >>> import pathlib, tempfile
+    >>> path = pathlib.Path(tempfile.mkdtemp()) / "pos.csv"
+    >>> _ = path.write_text("x_um,y_um\\n0,0\\n-3.5,8.75\\n")
+    >>> read_positions(path, pixel_size=3.5, size=48)
+    array([[24. , 24. ],
+           [26.5, 23. ]])
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"positions file not found: {path}")
-    lines = list(csv.reader(path.read_text(encoding="utf-8").splitlines()))
-    header = [cell.strip().lower() for cell in lines[0]] if lines else []
-    if header != ["row", "col"]:
-        raise CalibrationError(f"{path.name} line 1: expected the header 'row,col', got "
-                               f"{','.join(header)!r}")  # fmt: skip
-    rows = []
-    for number, cells in enumerate(lines[1:], start=2):
-        if not any(cell.strip() for cell in cells):
-            continue
-        try:
-            values = [float(cell) for cell in cells]
-        except ValueError:
-            values = []
-        if len(values) != 2 or not all(math.isfinite(v) and v == round(v) for v in values):
-            raise CalibrationError(f"{path.name} line {number} (frame {len(rows)}): expected "
-                                   f"two whole pixel numbers row,col, got {','.join(cells)!r}")
-        rows.append(values)
-    return np.asarray(rows, dtype=np.int64).reshape(-1, 2)
+    name = path.name
+    # utf-8-sig: a spreadsheet's CSV may start with a byte-order mark
+    lines = [(number, [cell.strip() for cell in cells]) for number, cells in
+             enumerate(csv.reader(path.read_text(encoding="utf-8-sig").splitlines()), start=1)
+             if any(cell.strip() for cell in cells)]  # fmt: skip
+    if not lines:
+        raise CalibrationError(f"{name}: no positions (an empty file)")
+    number, first = lines[0]
+    if all(_number(cell) is None for cell in first):
+        lines = lines[1:]
+        names = [cell.lower() for cell in first]
+        if sorted(names) == sorted(PIXEL_COLUMNS):
+            axes, scale = [PIXEL_COLUMNS[n] for n in names], None
+        elif sorted(names) == sorted(MICROMETRE_COLUMNS):
+            axes = [MICROMETRE_COLUMNS[n] for n in names]
+            if pixel_size is None:
+                raise CalibrationError(
+                    f"{name} line {number}: positions in micrometres ({','.join(first)}) need "
+                    "the object-space pixel size in micrometres (svcode calibrate --pixel-size)")
+            if not (math.isfinite(pixel_size) and pixel_size > 0):
+                raise CalibrationError(f"the pixel size must be a positive number of "
+                                       f"micrometres, got {pixel_size:g}")  # fmt: skip
+            if size is None:
+                raise ValueError("read_positions: micrometres need the object grid's size")
+            scale = float(pixel_size)
+        else:
+            raise CalibrationError(
+                f"{name} line {number}: unknown header {','.join(first)!r}: expected row,col "
+                "(object pixels) or x_um,y_um (stage micrometres)")
+    else:
+        names, axes, scale = ["row", "col"], [0, 1], None
+    if not lines:
+        raise CalibrationError(f"{name}: no positions after the header line {number}")
+    columns = ",".join(names)
+    positions = np.empty((len(lines), 2))
+    for index, (number, cells) in enumerate(lines):
+        if len(cells) != 2:
+            raise CalibrationError(f"{name} line {number}: expected 2 values {columns}, got "
+                                   f"{len(cells)}: {','.join(cells)!r}")  # fmt: skip
+        for cell, axis in zip(cells, axes, strict=True):
+            value = _number(cell)
+            if value is None:
+                raise CalibrationError(f"{name} line {number}: {cell!r} is not a number "
+                                       f"(expected {columns})")  # fmt: skip
+            positions[index, axis] = value if scale is None else size // 2 + value / scale
+        row, col = positions[index]
+        if size is not None and not (0 <= row <= size - 1 and 0 <= col <= size - 1):
+            where = "" if scale is None else f" ({columns} = {','.join(cells)})"
+            raise CalibrationError(
+                f"{name} line {number}: position ({row:g}, {col:g}){where} lies outside the "
+                f"{size}×{size} object grid (pixels 0 to {size - 1})")
+    if frames is not None and len(positions) < frames:
+        raise CalibrationError(
+            f"{name}: {len(positions)} positions for {frames} frames: frame {len(positions)} "
+            f"has no position (the last is on line {lines[-1][0]})")
+    if frames is not None and len(positions) > frames:
+        raise CalibrationError(f"{name} line {lines[frames][0]}: more positions than the "
+                               f"{frames} frames of the scan")  # fmt: skip
+    return positions
+
+
+def _number(cell: str) -> float | None:
+    """The finite number a CSV cell holds, else ``None``."""
+    try:
+        value = float(cell)
+    except ValueError:
+        return None
+    return value if math.isfinite(value) else None
 
 
 def _check_scan(frames: np.ndarray, positions: np.ndarray, system: SystemConfig,
@@ -129,10 +222,11 @@ def _check_scan(frames: np.ndarray, positions: np.ndarray, system: SystemConfig,
             f"frame {min(len(frames), len(positions))} has "
             + ("no position" if len(frames) > len(positions) else "no frame"))
     size = system.sub_view_size
-    outside = np.flatnonzero(((positions < 0) | (positions >= size)).any(axis=1))
+    on_grid = np.isfinite(positions) & (positions >= 0) & (positions <= size - 1)
+    outside = np.flatnonzero(~on_grid.all(axis=1))
     if outside.size:
         n = int(outside[0])
-        raise CalibrationError(f"frame {n}: position ({positions[n, 0]}, {positions[n, 1]}) "
+        raise CalibrationError(f"frame {n}: position ({positions[n, 0]:g}, {positions[n, 1]:g}) "
                                f"lies outside the {size}×{size} object grid")
     bad = np.flatnonzero(~np.isfinite(frames).all(axis=(1, 2)))
     if bad.size:
@@ -171,7 +265,8 @@ class Calibration:
     lens_residuals : numpy.ndarray
         ``(9, 2)`` offsets left after the translation and rotation (per-lens errors).
     centroids : numpy.ndarray
-        ``(N, 9, 2)`` measured spot centroids in sensor pixels, NaN where not measured.
+        ``(N, 9, 2)`` measured spot centroids in sensor pixels of every frame (of the mean
+        frame of its position), NaN where not measured.
     predicted : numpy.ndarray
         ``(N, 9, 2)`` centroids predicted by the fitted chief rays and nominal optics.
     throughput : numpy.ndarray
@@ -181,7 +276,7 @@ class Calibration:
     brightness : float
         Source brightness the frames were divided by.
     noise_sigma : float
-        Estimated noise standard deviation of one frame's background.
+        Estimated noise standard deviation of one (raw, not averaged) frame's background.
     """
 
     system: SystemConfig
@@ -219,16 +314,20 @@ def _image_points(system: SystemConfig, rays: np.ndarray, positions: np.ndarray)
     return positions[:, None, :].astype(float) + offset[None]
 
 
-def _windows(frames: np.ndarray, corners: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+def _windows(frames: np.ndarray, corners: np.ndarray, k: int,
+             margin: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """``k × k`` crops at integer top-left ``corners`` ``(N, 9, 2)``; zero and masked off-sensor.
 
-    Returns windows ``(N, 9, k, k)`` and the on-sensor mask of the same shape.
+    ``margin`` ``(N, 2)``: rows and columns at each sensor edge of frame ``n`` that are
+    masked too. Returns windows ``(N, 9, k, k)`` and the on-sensor mask of the same shape.
     """
     n, height, width = frames.shape
+    margin = np.zeros((n, 2), np.int64) if margin is None else margin
     rows = corners[..., 0, None] + np.arange(k)  # (N, 9, k)
     cols = corners[..., 1, None] + np.arange(k)
-    inside = ((rows >= 0) & (rows < height))[..., :, None] & ((cols >= 0) & (cols < width))[
-        ..., None, :]
+    low_r, low_c = (margin[:, None, None, i] for i in range(2))
+    inside = ((rows >= low_r) & (rows < height - low_r))[..., :, None] & (
+        (cols >= low_c) & (cols < width - low_c))[..., None, :]
     r = np.clip(rows, 0, height - 1)[..., :, None]
     c = np.clip(cols, 0, width - 1)[..., None, :]
     frame = np.arange(n)[:, None, None, None]
@@ -247,10 +346,11 @@ def _centroid(windows: np.ndarray) -> np.ndarray:
 
 
 def _find_spots(frames: np.ndarray, expected: np.ndarray, system: SystemConfig,
-                sigma: float, progress: Progress) -> np.ndarray:  # fmt: skip
+                sigma: float, progress: Progress, labels: list[str]) -> np.ndarray:  # fmt: skip
     """``(N, 9, 2)`` integer peak of each lens's spot, ``-1`` where none is detected.
 
-    ``progress`` hears of every frame, as the fractions 0.05 to 0.5 of the calibration.
+    ``frames`` are the scan's positions (their mean frames), ``labels`` name their frames
+    in errors; ``progress`` hears of every position, as the fractions 0.05 to 0.5.
     """
     radius = _lens_pitch(system) / 2.0
     smooth_sigma = max(system.optics.airy_radius / 2.0, 0.5)
@@ -260,14 +360,14 @@ def _find_spots(frames: np.ndarray, expected: np.ndarray, system: SystemConfig,
     threshold = float(norm.isf(1.0 / frames.size)) * smooth_noise
     peaks = np.full(expected.shape, -1, dtype=np.int64)
     for n, frame in enumerate(frames):
-        progress(f"finding spots: frame {n + 1} of {len(frames)}",
+        progress(f"finding spots: position {n + 1} of {len(frames)}",
                  0.05 + 0.45 * n / len(frames))  # fmt: skip
         smooth = ndimage.gaussian_filter(frame, smooth_sigma)
         found = peak_local_max(smooth, min_distance=max(1, int(radius // 2)),
                                threshold_abs=threshold, exclude_border=False)  # fmt: skip
         if found.size == 0:
             raise CalibrationError(
-                f"frame {n}: no spot above the detection threshold {threshold:.3g} "
+                f"{labels[n]}: no spot above the detection threshold {threshold:.3g} "
                 f"(noise {sigma:.3g}); is the source in the field and the exposure long enough?")
         distance = np.linalg.norm(found[None, :, :] - expected[n][:, None, :], axis=-1)
         for lens in range(N_LENSES):
@@ -276,7 +376,7 @@ def _find_spots(frames: np.ndarray, expected: np.ndarray, system: SystemConfig,
                 best = near[np.argmax(smooth[found[near, 0], found[near, 1]])]
                 peaks[n, lens] = found[best]
         if (peaks[n] < 0).all():
-            raise CalibrationError(f"frame {n}: spots found, but none within {radius:.0f} px of "
+            raise CalibrationError(f"{labels[n]}: spots found, but none within {radius:.0f} px of "
                                    "a lens's nominal image point: wrong positions or system?")
     return peaks
 
@@ -309,11 +409,48 @@ def fit_array(offsets: np.ndarray, system: SystemConfig) -> tuple[np.ndarray, fl
 
 
 def _grid_design(positions: np.ndarray, system: SystemConfig) -> np.ndarray:
-    """``(N, G·G)`` weights of the grid PSFs at each position (the operator's interpolation)."""
-    basis = interpolation_basis(system.optics.psf_grid, system.sub_view_size)
-    rows = basis[:, positions[:, 0]]  # (G, N)
-    cols = basis[:, positions[:, 1]]
-    return np.einsum("an,bn->nab", rows, cols).reshape(len(positions), -1)
+    """``(N, G·G)`` weights of the grid PSFs at each position (the operator's interpolation).
+
+    The cubic spline of :func:`svcode_core.physics.lowrank.interpolation_basis`, evaluated
+    at positions that may fall between pixels.
+    """
+    grid, size = system.optics.psf_grid, system.sub_view_size
+    if grid == 1:
+        return np.ones((len(positions), 1))
+    from scipy.interpolate import CubicSpline
+
+    spline = CubicSpline(np.linspace(-1.0, 1.0, grid), np.eye(grid), axis=0,
+                         bc_type="not-a-knot")  # fmt: skip
+    coords = np.clip(2.0 * np.asarray(positions, np.float64) / (size - 1) - 1.0, -1.0, 1.0)
+    rows, cols = spline(coords[:, 0]), spline(coords[:, 1])  # (N, G)
+    return np.einsum("na,nb->nab", rows, cols).reshape(len(positions), -1)
+
+
+def _average_repeats(frames: np.ndarray, positions: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """The mean frame of every distinct position.
+
+    Returns the distinct positions ``(M, 2)`` (sorted, so the scan's order does not
+    matter), their mean frames ``(M, H, W)``, the number of frames of each ``(M,)`` and
+    the index of every frame's position ``(N,)``.
+    """
+    distinct, which, counts = np.unique(positions, axis=0, return_inverse=True,
+                                        return_counts=True)  # fmt: skip
+    which = which.ravel()
+    means = np.stack([frames[which == m].mean(axis=0) for m in range(len(distinct))])
+    return distinct, means, counts, which
+
+
+def _subpixel_shift(frame: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    """``frame`` moved by a sub-pixel ``shift`` ``(row, col)``.
+
+    A Fourier shift, exact for an image sampled finely enough for its optics; the frame
+    is mirrored at its edges first, so that a spot the sensor cuts does not ring.
+    """
+    pad = 16
+    padded = np.pad(frame, pad, mode="symmetric")
+    spectrum = ndimage.fourier_shift(np.fft.rfft2(padded), shift, n=padded.shape[1])
+    return np.fft.irfft2(spectrum, padded.shape)[pad:-pad, pad:-pad]
 
 
 def _fit_grid(samples: np.ndarray, masks: np.ndarray, design: np.ndarray,
@@ -367,7 +504,9 @@ def calibrate(
     frames : numpy.ndarray
         ``(N, H, W)`` raw frames, ``H × W`` the system's sensor.
     positions : numpy.ndarray
-        ``(N, 2)`` source positions ``(row, col)`` in whole pixels of the object grid.
+        ``(N, 2)`` source positions ``(row, col)`` in pixels of the object grid, fractions
+        allowed (:func:`read_positions`), in any order; the frames of a position are
+        averaged (in the PSF fit, a position weighs as many frames as it has).
     system : SystemConfig
         The nominal system: sensor, object grid, PSF grid and kernel size, starting chief
         rays and the pupil model used for the centroid shifts and as a weak prior.
@@ -403,7 +542,7 @@ def calibrate(
         integer = np.issubdtype(frames.dtype, np.integer)
         saturation = float(np.iinfo(frames.dtype).max) if integer else system.noise.saturation
     frames = frames.astype(np.float64)
-    positions = np.asarray(positions, dtype=np.int64).reshape(-1, 2)
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
     saturation = float(saturation)
     _check_scan(frames, positions, system, saturation)
     tolerance = system.rank_tolerance if tolerance is None else float(tolerance)
@@ -417,14 +556,26 @@ def calibrate(
         frames = frames - dark
     else:
         frames = frames - np.median(frames, axis=(1, 2), keepdims=True)
-    # Robust noise of the background: spots cover a small fraction of every frame.
-    sigma = float(np.median(median_abs_deviation(frames, axis=(1, 2), scale="normal")))
+    # From here on, one mean frame per distinct position (whatever the scan's order); in
+    # the PSF fit and the brightness a position of c frames weighs c, as its frames would.
+    positions, frames, counts, which = _average_repeats(frames, positions)
+    labels = [_frame_label(np.flatnonzero(which == m)) for m in range(len(positions))]
+    # Robust noise of one frame's background: spots cover a small fraction of every frame.
+    sigma = float(np.median(median_abs_deviation(frames, axis=(1, 2), scale="normal")
+                            * np.sqrt(counts)))  # fmt: skip
     sigma = max(sigma, 1e-12)
+    # A source a fraction f off its nearest whole pixel q: its frame moved back by -f is
+    # the frame of a source on q, as the operator's PSFs are, with the PSF shapes of p.
+    nearest = np.floor(positions + 0.5)
+    fraction = positions - nearest
+    frames = _registered(frames, fraction)
+    margin = np.where(fraction != 0, SHIFT_MARGIN, 0)
     k = system.optics.kernel_size
     half = k // 2
     nominal_rays = np.asarray(system.chief_rays, float)
-    expected = _image_points(system, nominal_rays, positions)
-    peaks = _find_spots(frames, np.rint(expected).astype(np.int64), system, sigma, report)
+    expected = _image_points(system, nominal_rays, nearest)
+    peaks = _find_spots(frames, np.rint(expected).astype(np.int64), system,
+                        sigma / math.sqrt(counts.min()), report, labels)  # fmt: skip
     report("fitting the chief rays", 0.5)
 
     # -- chief rays: centroid of each whole spot against the nominal PSF's centroid
@@ -437,9 +588,10 @@ def calibrate(
         whole[lens] = np.rint(np.median(peaks[found[:, lens], lens] - expected[found[:, lens],
                                                                               lens], axis=0))
     centres = np.rint(expected + whole[None]).astype(np.int64)
-    windows, inside = _windows(frames, centres - half, k)
+    windows, inside = _windows(frames, centres - half, k, margin)
     complete = found & inside.all(axis=(-2, -1))
-    # The nominal model's image of each point: its grid PSFs interpolated as the operator does.
+    # The nominal model's image of each point: its grid PSFs interpolated as the operator
+    # does, at the position p itself.
     design = _grid_design(positions, system)
     nominal = np.einsum("ng,lgij->nlij", design, system_psfs(system))
     shift = _centroid(windows) - _centroid(nominal)  # (N, 9, 2) sub-pixel moves
@@ -456,25 +608,29 @@ def calibrate(
     array_shift, rotation, residuals = fit_array(offsets, system)
     fitted = nominal_rays + offsets
     rays = np.rint(fitted).astype(np.int64)
+    # in the recorded frames, where the source was
     predicted = _image_points(system, fitted, positions) + _centroid(nominal)
-    centroids = np.where(complete[..., None], centres + _centroid(windows), np.nan)
+    centroids = centres + _centroid(windows) + fraction[:, None]
     system = system.replace(chief_rays=tuple((int(r), int(c)) for r, c in rays))
 
     # -- PSFs: windows at the calibrated integer image points, fitted to the grid
-    windows, inside = _windows(frames, np.rint(_image_points(system, rays, positions)).astype(
-        np.int64) - half, k)
+    windows, inside = _windows(frames, _image_points(system, rays, nearest).astype(np.int64)
+                               - half, k, margin)  # fmt: skip
     prior_psfs = system_psfs(system, offsets=fitted - rays)
     overlap = complete & inside.all(axis=(-2, -1))
-    measured = windows[overlap].sum()
-    predicted_sum = np.einsum("ng,lgij->nl", design, prior_psfs)[overlap].sum()
+    weight = np.broadcast_to(counts[:, None], overlap.shape)
+    measured = (windows.sum(axis=(-2, -1)) * weight)[overlap].sum()
+    predicted_sum = (np.einsum("ng,lgij->nl", design, prior_psfs) * weight)[overlap].sum()
     brightness = float(measured / predicted_sum)
     if design.shape[0] < design.shape[1] or np.linalg.matrix_rank(design) < design.shape[1]:
         g = system.optics.psf_grid
         raise CalibrationError(
-            f"the {len(positions)} positions do not determine the {g}×{g} PSF grid "
+            f"the {len(positions)} distinct positions do not determine the {g}×{g} PSF grid "
             f"(optics.psf_grid): scan at least {g} distinct rows and {g} distinct columns "
             "spread over the object grid")
-    samples = windows / brightness
+    root = np.sqrt(counts)
+    samples = windows / brightness * root[:, None, None, None]
+    design = design * root[:, None]
     psfs = []
     for lens in range(N_LENSES):
         report(f"fitting the PSFs: lens {lens + 1} of {N_LENSES}", 0.55 + 0.4 * lens / N_LENSES)
@@ -488,12 +644,27 @@ def calibrate(
     report("choosing the low-rank order", 0.95)
     ranks = tuple(decompose_psfs(lens_psfs_, None, tolerance).rank for lens_psfs_ in psfs)
     report("done", 1.0)
+    spots = complete[which, :, None]  # per frame of the scan again
     return Calibration(
         system=system, psfs=psfs, chief_rays=fitted, offsets=offsets, offset_errors=errors,
         array_shift=array_shift, array_rotation_deg=rotation, lens_residuals=residuals,
-        centroids=centroids, predicted=np.where(complete[..., None], predicted, np.nan),
+        centroids=np.where(spots, centroids[which], np.nan),
+        predicted=np.where(spots, predicted[which], np.nan),
         throughput=throughput, ranks=ranks, brightness=brightness, noise_sigma=sigma,
     )  # fmt: skip
+
+
+def _frame_label(frames: np.ndarray) -> str:
+    """How errors name the frames of one position: ``frame 7`` or ``frames 7, 56 (averaged)``."""
+    if len(frames) == 1:
+        return f"frame {int(frames[0])}"
+    return f"frames {', '.join(str(int(n)) for n in frames)} (averaged)"
+
+
+def _registered(frames: np.ndarray, fraction: np.ndarray) -> np.ndarray:
+    """Each frame moved by ``-fraction`` ``(N, 2)``: as if its source sat on a whole pixel."""
+    return np.stack([frame if not move.any() else _subpixel_shift(frame, -move)
+                     for frame, move in zip(frames, fraction, strict=True)])  # fmt: skip
 
 
 def _silent(stage: str, fraction: float) -> None:
