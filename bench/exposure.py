@@ -2,14 +2,15 @@
 (bench/results/exposure.md).
 
 *Exposure*: every benchmark scene of the realistic regime (the benchmark's truths and noise
-seeds) is simulated once, and the recorded frame multiplied by ``s`` (a shorter exposure
-with the same photons, or a lower ADC gain); each method reconstructs ``s · frame`` and the
-result is divided by ``s`` before it is scored against the truth. A method that is
-equivariant to the scale scores the same at every ``s``. *Photons*: the realistic regime's
-photon level is lowered (a truly dimmer sample: more shot noise) and the frame reconstructed
-as recorded. Methods: the bundled SV-CoDe model with its exposure normalisation (the
-default), the same model fed the frames as they are (``normalise_exposure=False``), and
-LSV-ADMM (``K`` = 3, 50 iterations, λ from the frame).
+seeds) is simulated once, and the recorded frame multiplied by ``s`` (the same photons
+read with a lower ADC gain); each method reconstructs ``s · frame`` and the result is
+divided by ``s`` before it is scored against the truth. A method that is equivariant to
+the scale scores the same at every ``s``. *Photons*: the scene made dimmer by a factor
+``f`` before it is imaged by the same camera (fewer photo-electrons: relatively more shot
+and read noise), reconstructed as recorded and divided by ``f``. Methods: the bundled
+SV-CoDe model with its exposure normalisation (the default), the same model fed the
+frames as they are (``normalise_exposure=False``), and LSV-ADMM (``K`` = 3, 50 iterations,
+λ from the frame).
 
 Run: ``OMP_NUM_THREADS=1 python bench/exposure.py`` (about 15 minutes on one thread;
 ``--no-admm`` skips LSV-ADMM, the slow part).
@@ -18,7 +19,6 @@ Run: ``OMP_NUM_THREADS=1 python bench/exposure.py`` (about 15 minutes on one thr
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import time
 from pathlib import Path
 
@@ -34,7 +34,7 @@ from svcode_core.physics.simulate import Simulator
 
 RESULTS = Path(__file__).parent / "results"
 SCALES = (1.0, 0.2, 0.05, 0.02)
-#: photon levels as fractions of the realistic regime's
+#: the scenes' brightness as fractions of the benchmark's (fewer photons)
 PHOTON_FRACTIONS = (1.0, 0.25, 0.0625)
 
 
@@ -58,15 +58,14 @@ def main() -> None:
     args = parser.parse_args()
     system = SystemConfig.preset("cm2-mini")
     realistic = Departures.named(REGIMES["realistic"], system)
+    simulator = Simulator(system, departures=realistic)
     truths = {name: scene_object(kind, system.sub_view_size, index, params)
               for index, (name, kind, params) in enumerate(SCENES)}
     recorded = {fraction: {} for fraction in PHOTON_FRACTIONS}
     for fraction in PHOTON_FRACTIONS:
-        simulator = Simulator(system, departures=dataclasses.replace(
-            realistic, photons=realistic.photons * fraction))
         for index, (name, truth) in enumerate(truths.items()):
             recorded[fraction][name] = simulator.simulate(
-                truth, seed=100 + index).measurement.astype(np.float32)
+                truth * np.float32(fraction), seed=100 + index).measurement.astype(np.float32)
     rows = []
     for label, reconstructor in methods(system, not args.no_admm).items():
         sweeps = [("exposure", s, 1.0) for s in SCALES]
@@ -78,7 +77,8 @@ def main() -> None:
             begin, per_scene = time.perf_counter(), {}
             for name, truth in truths.items():
                 frame = recorded[fraction][name] * np.float32(scale)
-                estimate = reconstructor.reconstruct(frame).reconstruction / np.float32(scale)
+                estimate = (reconstructor.reconstruct(frame).reconstruction
+                            / np.float32(scale * fraction))
                 per_scene[name] = psnr(truth, estimate, 1.0)
             seconds = (time.perf_counter() - begin) / len(truths)
             rows.append({"method": label, "sweep": sweep, "scale": scale,
