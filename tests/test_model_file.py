@@ -83,6 +83,17 @@ def test_other_system_is_refused(saved):
         load_model(path, SystemConfig.preset("cm2-mini"))
 
 
+def test_a_calibrated_system_keeps_the_model(saved, tmp_path):
+    """Moved chief rays and a measured forward model (PSF stack, rank) are not inputs of
+    the network: the model loads for such a system."""
+    path, _, system = saved
+    rays = tuple((r + 1, c - 1) for r, c in system.chief_rays)
+    calibrated = system.replace(chief_rays=rays, psf_model=str(tmp_path / "psfs.tif"),
+                                rank=None, rank_tolerance=0.01)
+    _, stored = load_model(path, calibrated)
+    assert stored == system
+
+
 def test_shape_mismatch_is_refused(tmp_path, saved):
     path, model, system = saved
     wider = TINY.replace(width=6)

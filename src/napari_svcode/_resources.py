@@ -8,11 +8,11 @@ from pathlib import Path
 import torch
 
 from svcode_core.config import SystemConfig
-from svcode_core.methods.model_file import PLACEMENT_FIELDS, load_model
+from svcode_core.methods.model_file import FREE_FIELDS, load_model
 from svcode_core.physics.simulate import Simulator
 from svcode_core.pretrained import bundled_weights as bundled_model
 
-__all__ = ["NO_BUNDLED_MODEL", "PLACEMENT_FIELDS", "available_devices", "bundled_model",
+__all__ = ["FREE_FIELDS", "NO_BUNDLED_MODEL", "available_devices", "bundled_model",
            "cached_model", "simulator"]
 
 
@@ -32,8 +32,9 @@ def cached_model(path: str | Path, system: SystemConfig | None = None):
     """``(model, training system)`` of a model file, loaded once per file version.
 
     ``system`` (optional) is checked against the model's training system, except for
-    :data:`PLACEMENT_FIELDS`: the model applies unchanged to a system whose sub-views are
-    cut at other chief rays (a moved sub-view box, calibrated chief rays).
+    :data:`FREE_FIELDS`: the model applies unchanged to a system whose sub-views are cut
+    at other chief rays (a moved sub-view box, calibrated chief rays) or whose forward
+    model is measured (a calibration's PSFs).
 
     Raises
     ------
@@ -49,7 +50,7 @@ def cached_model(path: str | Path, system: SystemConfig | None = None):
     model, stored = _load(str(path.resolve()), path.stat().st_mtime_ns)
     if system is None:
         return model, stored
-    placed = system.replace(**{name: getattr(stored, name) for name in PLACEMENT_FIELDS})
+    placed = system.replace(**{name: getattr(stored, name) for name in FREE_FIELDS})
     if placed != stored:
         given, trained = placed.to_dict(), stored.to_dict()
         fields = [name for name in sorted(given.keys() | trained.keys())

@@ -130,6 +130,11 @@ def read_model_metadata(path: str | Path) -> dict[str, Any]:
 #: are cut, and a model sees the sub-views with coordinates relative to them, so it applies
 #: unchanged to a system whose chief rays moved (calibrated, self-registered, nudged).
 PLACEMENT_FIELDS = ("chief_rays",)
+#: The forward model's description (measured PSFs, their rank): what the model-based
+#: methods invert, never an input of a network, so a calibrated system keeps its model.
+FORWARD_MODEL_FIELDS = ("psf_model", "rank", "rank_tolerance")
+#: Every system field a model may differ in from the system it runs on.
+FREE_FIELDS = PLACEMENT_FIELDS + FORWARD_MODEL_FIELDS
 
 
 def load_model(
@@ -144,7 +149,7 @@ def load_model(
     path : str or Path
     system : SystemConfig, optional
         The instrument the caller will use the model on; a model trained for a different
-        system (other than in :data:`PLACEMENT_FIELDS`) is refused.
+        system (other than in :data:`FREE_FIELDS`) is refused.
     device : torch.device or str
 
     Returns
@@ -162,7 +167,7 @@ def load_model(
     meta = read_model_metadata(path)
     stored: SystemConfig = meta["system"]
     if system is not None:
-        placed = system.replace(**{name: getattr(stored, name) for name in PLACEMENT_FIELDS})
+        placed = system.replace(**{name: getattr(stored, name) for name in FREE_FIELDS})
         differences = _differences(placed.to_dict(), stored.to_dict())
         if differences:
             raise ValueError(

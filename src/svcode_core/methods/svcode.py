@@ -281,7 +281,7 @@ class Reconstructor(BaseReconstructor):
         """Load a trained model (and its system, unless given) and wrap it.
 
         ``system`` may differ from the model's training system in its chief rays only
-        (:data:`~svcode_core.methods.model_file.PLACEMENT_FIELDS`): the sub-views are then
+        (:data:`~svcode_core.methods.model_file.FREE_FIELDS`): the sub-views are then
         cut at its rays. ``options`` are those of the constructor (``device``,
         ``precision`` ...).
         """
