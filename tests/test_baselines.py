@@ -324,6 +324,46 @@ def test_command_line_options():
         baseline_options(args)
 
 
+def test_the_solvers_the_command_line_and_the_registry_share_the_defaults(tiny_system,
+                                                                        tiny_op, capsys):
+    """One place (the registry) defines each model-based default; the solvers run with it
+    and ``svcode reconstruct --help`` quotes it."""
+    import inspect
+
+    from svcode_core.cli import main
+    from svcode_core.methods import registry
+    from svcode_core.methods.baselines import default_rank, settings_for
+    from svcode_core.methods.baselines.deconv import ShiftInvariantDeconvolution
+
+    admm, wiener, rl = (registry.method(m).defaults for m in ("admm", "wiener", "rl"))
+    assert (admm["rank"], admm["iterations"], admm["tv_weight"]) == (3, 50, "auto")
+    assert (wiener["balance"], rl["iterations"]) == (0.1, 10)
+    rec = BaselineReconstructor("admm", tiny_system, operator=tiny_op)
+    assert (rec.iterations, rec.tolerance, rec.solver.tv_weight, rec.solver.rho,
+            rec.solver.cg_iterations) == tuple(admm[k] for k in (
+                "iterations", "tolerance", "tv_weight", "rho", "cg_iterations"))  # fmt: skip
+    settings = settings_for(tiny_system)
+    assert (settings.iterations, settings.tolerance) == (admm["iterations"], admm["tolerance"])
+    solve = inspect.signature(LsvAdmm.solve).parameters
+    assert solve["iterations"].default == admm["iterations"]
+    deconv = BaselineReconstructor("wiener", tiny_system, operator=tiny_op).solver
+    assert (deconv.balance, deconv.boundary) == (wiener["balance"], wiener["boundary"])
+    assert BaselineReconstructor("rl", tiny_system, operator=tiny_op).solver.iterations == 10
+    signature = inspect.signature(ShiftInvariantDeconvolution).parameters
+    assert signature["balance"].default == wiener["balance"]
+    assert signature["iterations"].default == rl["iterations"]
+    # the rank: at most 3, the system's own when smaller
+    assert default_rank(tiny_system) == 3
+    assert BaselineReconstructor("wiener", tiny_system).operator.rank == 3
+    assert default_rank(tiny_system.replace(rank=2)) is None
+    with pytest.raises(SystemExit):
+        main(["reconstruct", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for quoted in ("default 3, or the system's K when smaller", "default 50", "default auto",
+                   "default 10", "default 0.1", f"default {admm['tolerance']:g}"):
+        assert quoted in text, quoted
+
+
 def test_memory_budget_chunks_the_operator_not_the_result(tiny_system):
     from svcode_core.phantoms import make_object
     from svcode_core.physics.simulate import Simulator

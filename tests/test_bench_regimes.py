@@ -19,7 +19,7 @@ def test_quick_bench_runs_every_regime(tiny_system, tmp_path, capsys):
     system_json = tiny_system.save(tmp_path / "tiny.json")
     out = tmp_path / "results"
     assert main(["bench", "--quick", "--system", str(system_json), "--methods", "admm",
-                 "deconvolution", "--out", str(out)]) == 0
+                 "wiener", "rl", "--out", str(out)]) == 0
     report = json.loads((out / "regimes.json").read_text())
     assert report["regimes"] == list(REGIMES)
     assert report["departures"]["matched"] is None
@@ -39,14 +39,20 @@ def test_quick_bench_runs_every_regime(tiny_system, tmp_path, capsys):
     assert len(merged["rows"]) == len(report["rows"])
     assert merged["regimes"] == list(REGIMES)
     assert "[realistic]" in capsys.readouterr().out
-    # LSV-ADMM as a user runs it: only when asked for, merged beside the K = 3 rows
+    # LSV-ADMM at the system's K: only when asked for, merged beside the K = 3 rows
     assert main(["bench", "--quick", "--system", str(system_json), "--methods",
-                 "admm-defaults", "--regimes", "realistic", "--merge", "--out", str(out)]) == 0
+                 "admm-system-k", "--regimes", "realistic", "--merge", "--out", str(out)]) == 0
     merged = json.loads((out / "regimes.json").read_text())
-    [row] = [r for r in merged["rows"] if r["method"] == "LSV-ADMM defaults"]
+    [row] = [r for r in merged["rows"] if r["method"] == "LSV-ADMM at the system's K"]
     assert row["regime"] == "realistic" and row["settings"]["iterations"] == 200
     assert row["settings"]["rank"] == report["simulator_rank"] and np.isfinite(row["psnr"])
+    assert row["settings"]["tv_weight"] != "auto"  # the fixed λ, not the default's
     assert len(merged["rows"]) == len(report["rows"]) + 1
+    # one --method name of a family keeps only its own rows
+    assert main(["bench", "--quick", "--system", str(system_json), "--methods", "wiener",
+                 "--regimes", "matched", "--out", str(tmp_path / "wiener")]) == 0
+    alone = json.loads((tmp_path / "wiener" / "regimes.json").read_text())
+    assert {r["method"] for r in alone["rows"]} == {"Wiener"}
 
 
 def test_merge_keys_rows_by_regime_and_method():

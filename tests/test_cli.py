@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -49,7 +51,8 @@ def test_simulate_bad_object_is_a_clear_error(system_json, tmp_path, capsys):
 
 def test_a_command_builds_only_its_own_parser():
     """``svcode reconstruct`` registers (and imports) only its own sub-command: scipy, the
-    phantoms and the training code stay unloaded, a second of start-up saved per run."""
+    phantoms and the training code stay unloaded, a second of start-up saved per run;
+    ``svcode --help`` registers none."""
     import subprocess
     import sys
 
@@ -57,7 +60,7 @@ def test_a_command_builds_only_its_own_parser():
         "import sys\n"
         "from svcode_core.cli import COMMANDS, _commands_needed, build_parser\n"
         "assert _commands_needed(['--debug', 'reconstruct', 'x.tif']) == ('reconstruct',)\n"
-        "assert _commands_needed(['--help']) == _commands_needed(['recon']) == COMMANDS\n"
+        "assert _commands_needed(['--help']) == _commands_needed(['recon']) == ()\n"
         "build_parser(_commands_needed(['reconstruct', 'x.tif', '--out', 'y.tif']))\n"
         "loaded = [m for m in ('scipy', 'svcode_core.phantoms', 'svcode_core.training')\n"
         "          if m in sys.modules]\n"
@@ -66,6 +69,93 @@ def test_a_command_builds_only_its_own_parser():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True)  # fmt: skip
     assert out.stdout.strip() == "[]"
+
+
+#: the help that needs no torch: train's and bench's quote constants of the training code
+#: and the benchmark, which import it
+_LIGHT_HELP = ("", "reconstruct", "simulate", "demo", "dataset", "calibrate")
+
+
+@pytest.mark.parametrize("command", _LIGHT_HELP)
+def test_help_imports_no_torch(command):
+    """``svcode --help`` and ``svcode COMMAND --help`` start in a fraction of a second."""
+    import subprocess
+    import sys
+
+    bare = subprocess.run([sys.executable, "-c", "import sys, svcode_core; "
+                           "print('torch' in sys.modules)"], capture_output=True, text=True,
+                          check=True)  # fmt: skip
+    if bare.stdout.strip() == "True":
+        pytest.skip("the svcode_core package itself imports torch")
+    argv = [command, "--help"] if command else ["--help"]
+    code = (
+        "import sys\n"
+        "from svcode_core.cli import main\n"
+        "try:\n"
+        f"    main({argv!r})\n"
+        "except SystemExit:\n"
+        "    pass\n"
+        "print('torch' in sys.modules, file=sys.stderr)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)  # fmt: skip
+    assert "usage: svcode" in out.stdout and out.stderr.strip() == "False"
+
+
+def _options(command: str) -> dict[str, str]:
+    """Every option string of ``command`` → its destination."""
+    from svcode_core.cli import build_parser
+
+    parser = build_parser((command,))
+    [subparsers] = [a for a in parser._actions if a.dest == "command"]
+    return {flag: action.dest for flag, action in
+            subparsers.choices[command]._option_string_actions.items()}  # fmt: skip
+
+
+@pytest.mark.parametrize("command", ["simulate", "reconstruct", "demo", "dataset", "train",
+                                     "bench", "calibrate"])  # fmt: skip
+def test_one_meaning_per_flag(command):
+    """A flag means the same in every command that has it; the other name of an option
+    (``--preset``, ``--quiet``, ``--objects``) is the same option."""
+    options = _options(command)
+    assert options["--system"] == options["--preset"] == "system"
+    if "--no-progress" in options or "--quiet" in options:
+        assert options["--no-progress"] == options["--quiet"] == "no_progress"
+    if "--object" in options or "--objects" in options:
+        assert options["--object"] == options["--objects"] == "object"
+    if command == "train":  # the data loader's processes, not reconstruction's
+        assert options["--loader-workers"] == "loader_workers"
+
+
+def test_every_system_option_takes_a_preset_or_a_file(system_json, tmp_path, capsys):
+    for source in (["--preset", "cm2-mini"], ["--system", "cm2-mini"]):
+        out = tmp_path / source[0].strip("-")
+        assert main(["simulate", *source, "--object", "beads", "--no-noise", "--quiet",
+                     "--out", str(out)]) == 0
+    assert main(["dataset", "--preset", str(system_json), "--frames", "2", "--objects", "cells",
+                 "--quiet", "--out", str(tmp_path / "data")]) == 0
+    assert "differs" not in capsys.readouterr().err
+
+
+def test_train_workers_is_the_deprecated_name_of_loader_workers(tmp_path, capsys):
+    args = ["train", "--data", str(tmp_path / "none"), "--out", str(tmp_path / "run")]
+    assert main([*args, "--workers", "-1"]) == 2
+    err = capsys.readouterr().err
+    assert "warning: --workers is the deprecated name of --loader-workers" in err
+    assert "error: --loader-workers: must be >= 0, got -1" in err
+
+
+def test_bench_writes_beside_the_user_not_into_the_checkout(tmp_path, capsys):
+    from svcode_core.cli import build_parser
+    from svcode_core.cli.bench import CHECKOUT_RESULTS
+
+    args = build_parser(("bench",)).parse_args(["bench"])
+    assert args.out == Path("svcode-bench")
+    # a partial run into the committed report is refused before any work
+    for partial in (["--quick"], ["--regimes", "matched"], ["--methods", "wiener"]):
+        assert main(["bench", *partial, "--out", str(CHECKOUT_RESULTS)]) == 2
+        err = capsys.readouterr().err
+        assert "committed report" in err and "--merge" in err and partial[0] in err
 
 
 @pytest.mark.parametrize("command, option, message", [

@@ -24,7 +24,7 @@ from svcode_core.methods import (
     reconstructor_defaults,
     registry,
 )
-from svcode_core.methods.baselines import RL_ITERATIONS, WIENER_BALANCE, settings_for
+from svcode_core.methods.baselines import AdmmSettings
 from svcode_core.methods.tiling import TileGrid
 
 from ._choosers import ModelChooser
@@ -41,6 +41,10 @@ GPU_SPEED_UP = 20.0
 LONG_RUN_SECONDS = 15 * 60
 #: runs estimated to need more than this share of the free memory ask first
 MEMORY_SHARE = 0.8
+
+_ADMM = registry.method("admm").defaults
+_WIENER = registry.method("wiener").defaults
+
 
 #: the model-based methods' options that have a widget here
 _BASELINE_WIDGETS = ("rank", "iterations", "tv_weight", "balance", "boundary")
@@ -121,19 +125,25 @@ class MethodPanel(Container):
                                       "strips from the network's reconstruction (10: higher "
                                       "held-out scores for 2–3× the time); 0: none")
         self.rank = SpinBox(label="rank K", min=0, max=1024, value=0,
-                            tooltip="low-rank order of the forward model; 0: the system's")
+                            tooltip="low-rank order of the forward model; 0: "
+                                    f"{registry.DEFAULT_RANK}, or the system's K when smaller "
+                                    "(the system's K: a fraction of a dB, many times slower)")
         self.iterations = SpinBox(label="iterations", min=1, max=100_000, value=1)
         self.tv_weight = FloatSpinBox(label="TV weight λ", min=0.0, max=10.0, step=1e-5,
+                                      value=AdmmSettings().tv_weight,
                                       tooltip="total-variation weight of LSV-ADMM")
         self.tv_auto = CheckBox(text="λ from each frame's noise",
+                                value=_ADMM["tv_weight"] == "auto",
                                 tooltip="set λ from the frame's estimated noise and mean "
                                         "level (better for dim, few-photon frames)")
         self.tv_auto.changed.connect(lambda auto: setattr(self.tv_weight, "enabled", not auto))
+        self.tv_weight.enabled = not self.tv_auto.value
         self.balance = FloatSpinBox(label="balance", min=0.0, max=10.0, step=1e-4,
-                                    value=WIENER_BALANCE,
+                                    value=_WIENER["balance"],
                                     tooltip="Laplacian regularisation weight of the Wiener "
                                             "filter")
         self.boundary = ComboBox(label="boundary", choices=["reflect", "periodic"],
+                                 value=_WIENER["boundary"],
                                  tooltip="how the Wiener filter treats a view's edges")
         self._widgets = {"model": self.model, "weights": self.weights,
                          "precision": self.precision, "tile": self.tile, "batch": self.batch,
@@ -158,14 +168,11 @@ class MethodPanel(Container):
         self.set_system(self._system)
 
     def set_system(self, system: SystemConfig) -> None:
-        """Show the iteration count and TV weight that ``system``'s preset uses."""
+        """Show the chosen method's iteration count (its default, the same for every
+        system: :mod:`svcode_core.methods.registry`)."""
         self._system = system
-        if self.method.value == "admm":
-            settings = settings_for(system)
-            self.iterations.value = settings.iterations
-            self.tv_weight.value = settings.tv_weight
-        elif self.method.value == "rl":
-            self.iterations.value = RL_ITERATIONS
+        if "iterations" in registry.method(self.method.value).options:
+            self.iterations.value = registry.method(self.method.value).defaults["iterations"]
 
     # ---------------------------------------------------------------- values
     def options(self) -> dict[str, Any]:

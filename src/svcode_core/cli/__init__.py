@@ -26,25 +26,68 @@ from pathlib import Path
 from ..config import ConfigError, SystemConfig, available_presets, load_system
 from ..run.allocator import reuse_freed_memory
 
-COMMANDS = ("simulate", "reconstruct", "demo", "dataset", "train", "bench", "calibrate")
+#: every sub-command and its line in ``svcode --help``; its module is imported only when the
+#: command is named (what the modules import costs seconds: torch, scipy, scikit-image)
+SUMMARIES = {
+    "simulate": "simulate a raw CM² measurement with its ground truth",
+    "reconstruct": "reconstruct a raw CM² frame or frame stack",
+    "demo": "simulate a scene, reconstruct it with the bundled model, score it",
+    "dataset": "simulate training data for a system",
+    "train": "train SV-CoDe or a learned baseline on a simulated dataset",
+    "bench": "work–precision benchmark of every method and knob in every regime",
+    "calibrate": "calibrate a system from a point-source scan",
+}
+COMMANDS = tuple(SUMMARIES)
 
 
 def add_system_arguments(
     parser: argparse.ArgumentParser,
     default: str | None = "cm2-mini",
-    preset_help: str = "system preset (default: cm2-mini)",
+    what: str = "the system",
+    default_text: str | None = None,
 ) -> None:
-    """``--preset NAME`` or ``--system FILE.json``, mutually exclusive."""
-    source = parser.add_mutually_exclusive_group()
-    source.add_argument("--preset", default=default, choices=available_presets(),
-                        help=preset_help)  # fmt: skip
-    source.add_argument("--system", type=Path, help="system JSON file instead of a preset")
+    """``--system NAME|FILE.json``, the same in every command: a preset name or a system
+    JSON file; ``--preset`` is the same option. ``what`` says what the system is for,
+    ``default_text`` what the default is (else the ``default``'s name)."""
+    default_text = default_text or f"default: {default}"
+    parser.add_argument(
+        "--system", "--preset", dest="system", default=default, metavar="NAME|FILE.json",
+        help=f"{what}: a preset ({', '.join(available_presets())}) or a system JSON file "
+        f"({default_text})",
+    )
+
+
+def add_progress_argument(parser: argparse.ArgumentParser, what: str = "progress bar") -> None:
+    """``--no-progress`` (``--quiet`` is the same option), the same in every command."""
+    parser.add_argument("--no-progress", "--quiet", dest="no_progress", action="store_true",
+                        help=f"hide the {what}")  # fmt: skip
+
+
+def add_object_argument(parser: argparse.ArgumentParser, default: str, what: str = "",
+                        image: bool = False) -> None:
+    """``--object KIND`` (``--objects`` is the same option), the same in every command: a
+    phantom kind or, with ``image``, also a 2-D image file."""
+    from ..phantoms import KINDS  # scipy and scikit-image: only for the commands with it
+
+    kinds = ",".join(KINDS)
+    if image:
+        parser.add_argument("--object", "--objects", dest="object", default=default,
+                            metavar=f"{{{kinds},PATH}}",
+                            help=f"phantom kind{what}, or a 2-D TIFF/PNG to use as the object "
+                            f"(default: {default})")  # fmt: skip
+    else:
+        parser.add_argument("--object", "--objects", dest="object", default=default,
+                            choices=KINDS, help=f"phantom kind{what} (default: {default})")
 
 
 def chosen_system(args: argparse.Namespace) -> SystemConfig | None:
-    """The system of :func:`add_system_arguments`' options; ``None`` if neither is set."""
-    choice = args.system or args.preset
-    return load_system(choice) if choice else None
+    """The system of :func:`add_system_arguments`' option; ``None`` if it is not set."""
+    return load_system(args.system) if args.system else None
+
+
+def system_file(args: argparse.Namespace) -> Path | None:
+    """The file ``--system`` names, if it names one (not a preset): an input of the run."""
+    return Path(args.system) if args.system and Path(args.system).is_file() else None
 
 
 @contextlib.contextmanager
@@ -68,7 +111,7 @@ def in_option_words(options: Mapping[str, str]) -> Iterator[None]:
 
 def build_parser(commands: Sequence[str] = COMMANDS) -> argparse.ArgumentParser:
     """The ``svcode`` argument parser with ``commands`` (default: every sub-command)
-    registered."""
+    registered in full; the others are listed with their summary only."""
     parser = argparse.ArgumentParser(
         prog="svcode",
         description="SV-CoDe for computational miniature mesoscopes (CM²).",
@@ -76,8 +119,11 @@ def build_parser(commands: Sequence[str] = COMMANDS) -> argparse.ArgumentParser:
     debug_help = "show the full traceback of an error instead of a one-line message"
     parser.add_argument("--debug", action="store_true", help=debug_help)
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for name in commands:
-        importlib.import_module(f"{__name__}.{name}").add_parser(subparsers)
+    for name in COMMANDS:
+        if name in commands:
+            importlib.import_module(f"{__name__}.{name}").add_parser(subparsers)
+        else:
+            subparsers.add_parser(name, help=SUMMARIES[name])
     for command in subparsers.choices.values():  # also accepted after the command
         command.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                              help=debug_help)  # fmt: skip
@@ -85,11 +131,10 @@ def build_parser(commands: Sequence[str] = COMMANDS) -> argparse.ArgumentParser:
 
 
 def _commands_needed(argv: Sequence[str]) -> Sequence[str]:
-    """Only the sub-command ``argv`` names, when it names one (each sub-command module
-    imports what its command needs, up to a second of start-up for all of them); else
-    every one, for the help and the list of choices."""
+    """The sub-command ``argv`` names, when it names one; else none (``svcode --help`` and
+    the list of choices need only the summaries)."""
     first = next((arg for arg in argv if not arg.startswith("-")), None)
-    return (first,) if first in COMMANDS else COMMANDS
+    return (first,) if first in COMMANDS else ()
 
 
 def describe_error(err: BaseException) -> str:

@@ -8,38 +8,66 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import torch
+from ..methods.registry import LEARNED_METHODS, METHODS, method
+from . import SUMMARIES, add_progress_argument, add_system_arguments
 
-from ..config import load_system
-from ..evaluation import bench
+#: the report a source checkout commits (``bench/results`` beside ``src/``)
+CHECKOUT_RESULTS = Path(__file__).resolve().parents[3] / "bench" / "results"
+#: ``--methods``' rows beyond the ``--method`` names: LSV-ADMM's slow end, minutes a frame
+SYSTEM_K = "admm-system-k"
+#: the names ``--methods`` also takes: the benchmark's families (``deconvolution``: Wiener
+#: and Richardson–Lucy, ``learned``: every ``--learned`` file) and an earlier name
+_ALIASES = {"deconvolution": ("wiener", "rl"), "learned": LEARNED_METHODS,
+            "admm-defaults": (SYSTEM_K,)}  # fmt: skip
+#: the benchmark family that runs each ``--methods`` name
+_FAMILY = {"svcode": "svcode", "admm": "admm", "wiener": "deconvolution", "rl": "deconvolution",
+           **dict.fromkeys(LEARNED_METHODS, "learned"), SYSTEM_K: SYSTEM_K}  # fmt: skip
+#: what ``--methods`` runs when not given
+DEFAULT_METHODS = tuple(METHODS)
+
+
+def _method_names(text: str) -> tuple[str, ...]:
+    """``--methods`` item → ``--method`` names (or ``admm-system-k``)."""
+    if text in _FAMILY:
+        return (text,)
+    if text in _ALIASES:
+        return _ALIASES[text]
+    raise argparse.ArgumentTypeError(f"{text!r} is none of {', '.join(_FAMILY)}")
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Register ``svcode bench``."""
     parser = subparsers.add_parser(
         "bench",
-        help="work–precision benchmark of every method and knob in every regime",
-        description=__doc__.split("\n\n")[0],
+        help=SUMMARIES["bench"],
+        description=__doc__.split("\n\n")[0]
+        + " Writes regimes.{json,md,png} to --out; the checkout's committed report "
+        "(bench/results) only when named with --out, and then only a full run or --merge.",
     )
+    # the regimes are those of the benchmark (torch): imported for this command only
+    from ..evaluation.bench import REGIMES
+
     parser.add_argument("--quick", action="store_true",
                         help="small version: two scenes, fewer knobs, every regime (minutes)")
-    parser.add_argument("--regimes", nargs="+", choices=list(bench.REGIMES),
-                        default=list(bench.REGIMES),
+    parser.add_argument("--regimes", nargs="+", choices=list(REGIMES), default=list(REGIMES),
                         help="instruments the test frames come from (default: all)")
     parser.add_argument("--all-knobs", action="store_true",
                         help="in the matched regime, also SV-CoDe's time-only knobs (mask "
                         "cache off, bf16, skipping off)")  # fmt: skip
     parser.add_argument("--rank-sweep", action="store_true",
                         help="in the matched regime, also LSV-ADMM with K = 1 and 6")
-    parser.add_argument("--out", type=Path, default=Path("bench/results"), help="output folder")
-    parser.add_argument("--system", default="cm2-mini", help="preset or system JSON")
+    parser.add_argument("--out", type=Path, default=Path("svcode-bench"),
+                        help="output folder (default: ./svcode-bench)")
+    add_system_arguments(parser)
     parser.add_argument("--weights", type=Path, help="trained SV-CoDe model for its rows")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
-    parser.add_argument("--methods", nargs="*", choices=bench.METHOD_FAMILIES,
-                        default=list(bench.DEFAULT_FAMILIES),
-                        help="method families to run (default: all but admm-defaults, "
-                        "LSV-ADMM as `svcode reconstruct` runs it, minutes per frame; none: "
-                        "only the --ablations rows, e.g. with --merge)")  # fmt: skip
+    parser.add_argument("--methods", nargs="*", type=_method_names, metavar="METHOD",
+                        help="the --method names whose rows to run: "
+                        + ", ".join(f"{name} ({method(name).label})" for name in METHODS)
+                        + f", or {SYSTEM_K}: LSV-ADMM at "
+                        "the system's K with up to 200 iterations, minutes per frame "
+                        "(default: all but that; none: only the --ablations rows, e.g. with "
+                        "--merge)")  # fmt: skip
     parser.add_argument("--ablations", nargs="+", type=Path, default=[], metavar="WEIGHTS",
                         help="further SV-CoDe models (e.g. ablations), one row each at the "
                         "default knob")  # fmt: skip
@@ -50,7 +78,36 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="keep the rows of other methods from an earlier report in "
                         "--out (same system and scenes); rows of the methods run now "
                         "replace theirs")  # fmt: skip
+    add_progress_argument(parser, "progress lines")
     parser.set_defaults(func=run)
+
+
+def chosen_methods(args: argparse.Namespace) -> tuple[str, ...]:
+    """The ``--method`` names (and ``admm-system-k``) ``--methods`` asks for, in order."""
+    if args.methods is None:
+        return DEFAULT_METHODS
+    return tuple(dict.fromkeys(name for names in args.methods for name in names))
+
+
+def check_out(args: argparse.Namespace, regimes: tuple[str, ...]) -> None:
+    """Refuse to replace the checkout's committed report with a partial one: into
+    ``bench/results`` only a full run (every regime, the default methods, not ``--quick``)
+    or ``--merge``.
+
+    Raises
+    ------
+    ValueError
+        With what to do instead.
+    """
+    if args.merge or args.out.resolve() != CHECKOUT_RESULTS:
+        return
+    partial = [why for why, is_partial in (
+        ("--quick", args.quick), ("--regimes", tuple(args.regimes) != regimes),
+        ("--methods", chosen_methods(args) != DEFAULT_METHODS)) if is_partial]  # fmt: skip
+    if partial:
+        raise ValueError(f"--out {args.out} holds the checkout's committed report: a run with "
+                         f"{' and '.join(partial)} would replace it with a partial one; add "
+                         "--merge to replace only the rows run, or choose another --out")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -58,18 +115,30 @@ def run(args: argparse.Namespace) -> int:
 
     The figure has one work–precision panel per regime.
     """
+    import torch
+
+    from ..config import load_system
+    from ..evaluation import bench
+
     if args.threads < 1:
         raise ValueError(f"--threads must be >= 1 (torch CPU threads), got {args.threads}")
+    check_out(args, tuple(bench.REGIMES))
     for path in [args.weights, *args.ablations, *args.learned]:
         if path is not None and not path.is_file():
             raise FileNotFoundError(f"weights not found: {path}")
+    names = chosen_methods(args)
+    families = tuple(dict.fromkeys(_FAMILY[name] for name in names))
     torch.set_num_threads(args.threads)
     report = bench.run_benchmark(
         load_system(args.system), args.quick, args.weights,
-        methods=tuple(args.methods), ablations=tuple(args.ablations),
+        progress=(lambda line: None) if args.no_progress else print,
+        methods=families, ablations=tuple(args.ablations),
         learned=tuple(args.learned), regimes=tuple(args.regimes),
         all_knobs=args.all_knobs, rank_sweep=args.rank_sweep,
     )  # fmt: skip
+    if "deconvolution" in families:  # the family runs both: keep the rows asked for
+        left_out = {method(name).label for name in ("wiener", "rl") if name not in names}
+        report["rows"] = [row for row in report["rows"] if row["method"] not in left_out]
     stem = bench.write_report(report, args.out, args.merge)
     print(f"wrote {stem}.json, .md and .png ({report['total_seconds'] / 60:.1f} min)")
     return 0

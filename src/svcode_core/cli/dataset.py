@@ -5,17 +5,22 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..phantoms import KINDS
-from ..physics.departures import NAMED_SETS, load_departures
-from ..training import DataRecipe, generate_dataset
-from . import add_system_arguments, chosen_system, in_option_words
+from ..physics.departures import NAMED_SETS
+from . import (
+    SUMMARIES,
+    add_object_argument,
+    add_progress_argument,
+    add_system_arguments,
+    chosen_system,
+    in_option_words,
+)
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Register ``svcode dataset``."""
     parser = subparsers.add_parser(
         "dataset",
-        help="simulate training data for a system",
+        help=SUMMARIES["dataset"],
         description=(
             "Simulate N frames of phantoms (by default mixed: cells, vessels, neurons, beads, "
             "scikit-image crops) through the system and store the noiseless sub-views, the "
@@ -28,8 +33,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--frames", type=int, required=True, help="number of frames N")
     parser.add_argument("--out", type=Path, required=True, help="dataset folder")
     parser.add_argument("--seed", type=int, default=0, help="seed of objects and split")
-    parser.add_argument("--objects", default="mixed", choices=KINDS,
-                        help="phantom kind of every frame (default: mixed)")
+    add_object_argument(parser, "mixed", " of every frame")
     parser.add_argument("--val-fraction", type=float, default=0.1,
                         help="fraction of frames held out for validation (default: 0.1)")
     parser.add_argument("--departures", metavar="{" + ",".join(NAMED_SETS) + ",FILE}",
@@ -39,16 +43,19 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--instrument-frames", type=int, default=8,
                         help="consecutive frames sharing one draw of the optical departures "
                         "(default: 8; each draw costs a new forward model)")  # fmt: skip
-    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    add_progress_argument(parser)
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Generate (or finish) the dataset and print a summary."""
+    from ..physics.departures import load_departures
+    from ..training import DataRecipe, generate_dataset
+
     system = chosen_system(args)
     departures = None if args.departures is None else load_departures(args.departures, system)
     recipe = DataRecipe(frames=args.frames, seed=args.seed, val_fraction=args.val_fraction,
-                        object_kind=args.objects, departures=departures,
+                        object_kind=args.object, departures=departures,
                         instrument_frames=args.instrument_frames)
     options = {field: "--" + field.replace("_", "-")
                for field in ("frames", "seed", "val_fraction", "instrument_frames")}

@@ -6,22 +6,14 @@ import argparse
 import time
 from pathlib import Path
 
-import numpy as np
-
-from ..config import available_presets, load_system
-from ..evaluation.metrics import image_quality
-from ..io import write_tiff
-from ..methods.svcode import Reconstructor
-from ..outputs import check_outputs
-from ..phantoms import KINDS, make_object
-from ..physics.simulate import Simulator, scene_files
+from . import SUMMARIES, add_object_argument, add_system_arguments, chosen_system, system_file
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Register ``svcode demo``."""
     parser = subparsers.add_parser(
         "demo",
-        help="simulate a scene, reconstruct it with the bundled model, score it",
+        help=SUMMARIES["demo"],
         description=(
             "Simulate a scene with the chosen system, reconstruct it with the bundled "
             "SV-CoDe model (or --weights), print PSNR and SSIM against the ground truth and "
@@ -29,8 +21,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
             "demixed views, reconstruction, ground truth, error map) with the TIFFs."
         ),
     )
-    parser.add_argument("--preset", default="cm2-mini", choices=available_presets())
-    parser.add_argument("--object", default="cells", choices=KINDS)
+    add_system_arguments(parser)
+    add_object_argument(parser, "cells")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--weights", type=Path, help="trained model (default: the bundled one)")
     parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or mps")
@@ -41,12 +33,20 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Simulate, reconstruct, score, save the files and the picture."""
-    from ..evaluation.figures import overview_figure  # matplotlib: only when drawing
+    import numpy as np
+
+    from ..evaluation.figures import overview_figure
+    from ..evaluation.metrics import image_quality
+    from ..io import write_tiff
+    from ..methods.svcode import Reconstructor
+    from ..outputs import check_outputs
+    from ..phantoms import make_object
+    from ..physics.simulate import Simulator, scene_files
 
     files = [("--out", path) for path in scene_files(args.out).values()]
     files += [("--out", args.out / name) for name in ("reconstruction.tif", "demo.png")]
-    check_outputs(files, {"--weights": args.weights})
-    system = load_system(args.preset)
+    check_outputs(files, {"--weights": args.weights, "--system": system_file(args)})
+    system = chosen_system(args)
     if args.weights is not None:
         rec = Reconstructor.from_weights(args.weights, system, device=args.device)
     else:

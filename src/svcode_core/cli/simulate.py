@@ -8,30 +8,30 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-import tifffile
 
-from ..outputs import check_outputs, require_space
-from ..phantoms import KINDS, from_image, make_object
-from ..physics.cm2 import CM2Operator
-from ..physics.departures import NAMED_SETS, load_departures
-from ..physics.scene_checks import check_object, check_system_geometry
-from ..physics.simulate import Simulator, scene_bytes, scene_files
-from . import add_system_arguments, chosen_system
+from ..physics.departures import NAMED_SETS
+from . import (
+    SUMMARIES,
+    add_object_argument,
+    add_progress_argument,
+    add_system_arguments,
+    chosen_system,
+    system_file,
+)
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Register ``svcode simulate``."""
     parser = subparsers.add_parser(
         "simulate",
-        help="simulate a raw CM² measurement with its ground truth",
+        help=SUMMARIES["simulate"],
         description=(
             "Simulate a raw sensor frame of an object through the chosen system and write "
             "measurement.tif, views.tif, demixed.tif, object.tif and system.json to OUT."
         ),
     )
     add_system_arguments(parser)
-    parser.add_argument("--object", default="mixed", metavar="{" + ",".join(KINDS) + ",PATH}",
-                        help="phantom kind, or a 2-D TIFF/PNG to use as the object")
+    add_object_argument(parser, "mixed", image=True)
     parser.add_argument("--seed", type=int, default=0, help="seed of the phantom and the noise")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument("--no-noise", action="store_true", help="write the noiseless frame")
@@ -44,12 +44,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--memory-budget", type=float, metavar="GIB",
                         help="memory of the forward model's kept spectra and working chunks "
                              "(default 1 GiB; the nominal instrument only)")
+    add_progress_argument(parser, "progress bar of a stack")
     parser.set_defaults(func=run)
 
 
 def _read_image(path: Path) -> np.ndarray:
     """The pixels of ``--object PATH``; a colour image is taken as its luminance, with a
     warning."""
+    import tifffile
+
     if path.suffix.lower() in (".tif", ".tiff"):
         image = tifffile.imread(path)
     else:
@@ -64,6 +67,13 @@ def _read_image(path: Path) -> np.ndarray:
 
 def run(args: argparse.Namespace) -> int:
     """Simulate and write the files; print a one-line summary."""
+    from ..outputs import check_outputs, require_space
+    from ..phantoms import KINDS, from_image, make_object
+    from ..physics.cm2 import CM2Operator
+    from ..physics.departures import load_departures
+    from ..physics.scene_checks import check_object, check_system_geometry
+    from ..physics.simulate import Simulator, scene_bytes, scene_files
+
     if args.frames < 1:
         raise ValueError(f"--frames must be >= 1, got {args.frames}")
     if args.memory_budget is not None and not 0 < args.memory_budget < float("inf"):
@@ -74,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     size = system.sub_view_size
     image = Path(args.object) if args.object not in KINDS else None
     outputs = [("--out", path) for path in scene_files(args.out).values()]
-    check_outputs(outputs, {"--object": image, "--system": args.system})
+    check_outputs(outputs, {"--object": image, "--system": system_file(args)})
     require_space({args.out: scene_bytes(system.sensor_shape, size, args.frames)})
     if image is None:
         obj = make_object(args.object, size, args.seed)
@@ -94,7 +104,8 @@ def run(args: argparse.Namespace) -> int:
     simulator = Simulator(system, operator, departures=departures)
     built = time.perf_counter()
     scene = simulator.simulate(obj, seed=args.seed, noise=not args.no_noise,
-                               frames=args.frames, progress=args.frames > 1)
+                               frames=args.frames,
+                               progress=args.frames > 1 and not args.no_progress)
     done = time.perf_counter()
     scene.save(args.out, system, extra={"object": str(args.object), "seed": args.seed,
                                         "noise": not args.no_noise}, departures=departures)

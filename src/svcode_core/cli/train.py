@@ -4,33 +4,33 @@
 from __future__ import annotations
 
 import argparse
+import warnings
 from pathlib import Path
-
-import torch
+from typing import Any
 
 from ..config import SystemConfig
-from ..evaluation.metrics import RING_RADIUS
-from ..methods.model_file import read_model_metadata
 from ..methods.registry import LEARNED_METHODS, TRAINABLE_METHODS, method
-from ..pretrained import require_bundled_weights
-from ..training import TrainConfig, Trainer, TrainingData, init_distributed, shutdown_distributed
-from ..training.configs import (
-    ABLATIONS,
-    AnyModelConfig,
-    config_class,
-    model_config_from,
-    with_svcode_options,
+from . import (
+    SUMMARIES,
+    add_progress_argument,
+    add_system_arguments,
+    chosen_system,
+    in_option_words,
 )
-from ..training.loss import EDGE_STRIP
-from . import add_system_arguments, chosen_system, in_option_words
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Register ``svcode train``."""
+    # torch: the training defaults and the loss's constants live with the training code
+    from ..evaluation.metrics import RING_RADIUS
+    from ..training.configs import ABLATIONS
+    from ..training.loss import EDGE_STRIP
+    from ..training.trainer import TrainConfig
+
     defaults = TrainConfig()
     parser = subparsers.add_parser(
         "train",
-        help="train SV-CoDe or a learned baseline on a simulated dataset",
+        help=SUMMARIES["train"],
         description=(
             "Train the two-stage SV-CoDe network on the patches of a dataset written by "
             "`svcode dataset`, or a learned baseline (MultiWienerNet, SV-FourierNet) on its "
@@ -40,8 +40,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
             "-m svcode_core.cli train ...`."
         ),
     )
-    add_system_arguments(parser, default=None, preset_help="system preset; must match the "
-                         "dataset's (default: the dataset's)")  # fmt: skip
+    add_system_arguments(parser, default=None, what="the system; must match the dataset's",
+                         default_text="default: the dataset's")  # fmt: skip
     parser.add_argument("--data", type=Path, required=True, help="dataset folder")
     parser.add_argument("--out", type=Path, required=True, help="run folder")
     parser.add_argument("--method", default="svcode", choices=TRAINABLE_METHODS,
@@ -103,13 +103,17 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         "coordinate masks are computed once per run (N = batch size: several "
                         "times faster on a CPU; default: 1, independent draws)")
     parser.add_argument("--seed", type=int, default=defaults.seed)
-    parser.add_argument("--workers", type=int, default=defaults.workers,
-                        help="data-loading worker processes")
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu",
-                        help="cpu or cuda (under torchrun each process takes cuda:LOCAL_RANK)")
+    parser.add_argument("--loader-workers", type=int, default=defaults.workers, metavar="N",
+                        help="data-loading worker processes of each training process "
+                        f"(default {defaults.workers})")  # fmt: skip
+    parser.add_argument("--workers", type=int, dest="old_workers", metavar="N",
+                        help="deprecated name of --loader-workers")
+    parser.add_argument("--device",
+                        help="cpu or cuda (default: cuda when available; under torchrun each "
+                        "process takes cuda:LOCAL_RANK)")  # fmt: skip
     parser.add_argument("--resume", action="store_true",
                         help="continue from the latest checkpoint in OUT")
-    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    add_progress_argument(parser)
     parser.set_defaults(func=run)
 
 
@@ -118,14 +122,18 @@ _OPTION_OF_FIELD = {"alpha": "--ssim-weight", "beta": "--mse-weight"} | {
     field: "--" + field.replace("_", "-")
     for field in ("epochs", "batch_size", "lr", "min_lr_ratio", "warmup_steps", "grad_clip",
                   "edge_weight", "ring_weight", "patches_per_epoch", "val_patches", "seed",
-                  "workers", "same_origin", "photon_range")
-}  # fmt: skip
+                  "same_origin", "photon_range")
+} | {"workers": "--loader-workers"}  # fmt: skip
 
 
-def initial_weights(args: argparse.Namespace, system: SystemConfig) -> tuple[Path, AnyModelConfig]:
+def initial_weights(args: argparse.Namespace, system: SystemConfig) -> tuple[Path, Any]:
     """The model file of ``--init`` (``pretrained``: the bundled model of ``system``) and
     its network configuration, checked against ``--method``; ``--model-config`` and
     ``--ablation`` must be left out."""
+    from ..methods.model_file import read_model_metadata
+    from ..pretrained import require_bundled_weights
+    from ..training.configs import config_class
+
     if args.model_config is not None or args.ablation != "none":
         raise ValueError("--init takes the network configuration from the model file: "
                          "leave out --model-config and --ablation")  # fmt: skip
@@ -140,13 +148,28 @@ def initial_weights(args: argparse.Namespace, system: SystemConfig) -> tuple[Pat
 
 def run(args: argparse.Namespace) -> int:
     """Train (or resume) and print where the results are."""
+    import torch
+
+    from ..training import (
+        TrainConfig,
+        Trainer,
+        TrainingData,
+        init_distributed,
+        shutdown_distributed,
+    )
+    from ..training.configs import model_config_from, with_svcode_options
+
+    if args.old_workers is not None:
+        warnings.warn("--workers is the deprecated name of --loader-workers", FutureWarning,
+                      stacklevel=1)  # fmt: skip
+        args.loader_workers = args.old_workers
     config = TrainConfig(
         epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
         min_lr_ratio=args.min_lr_ratio, warmup_steps=args.warmup_steps, grad_clip=args.grad_clip,
         alpha=args.ssim_weight, beta=args.mse_weight, edge_weight=args.edge_weight,
         ring_weight=args.ring_weight,
         patches_per_epoch=args.patches_per_epoch, val_patches=args.val_patches,
-        seed=args.seed, workers=args.workers, same_origin=args.same_origin,
+        seed=args.seed, workers=args.loader_workers, same_origin=args.same_origin,
         photon_range=tuple(args.photon_range), normalise_exposure=args.normalise_exposure,
     )
     with in_option_words(_OPTION_OF_FIELD):
@@ -156,7 +179,7 @@ def run(args: argparse.Namespace) -> int:
     if system is not None and system != data.system:
         raise ValueError(f"the dataset {args.data} was simulated for system "
                          f"{data.system.name!r}, which differs from {system.name!r}")
-    device = torch.device(args.device)
+    device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
     dist = init_distributed(device.type)
     if device.type == "cuda" and dist.active:
         device = torch.device("cuda", dist.local_rank)

@@ -8,19 +8,27 @@
 * :mod:`.frames`: how raw frames are checked and scaled; :mod:`.model_file`: model files.
 """
 
-from .base import BaseReconstructor, FrameProgress, ReconstructionResult
-from .build import (
-    LEARNED_METHODS,
-    METHOD_TITLES,
-    METHODS,
-    MODEL_BASED_METHODS,
-    MethodSpec,
-    build_reconstructor,
-    cli_arguments,
-    iter_method,
-    reconstruct_with_method,
-    reconstructor_defaults,
-)
+import importlib
+
+#: each exported name → the module that defines it, imported on first use (PEP 562), so
+#: that :mod:`.registry` is imported without torch
+_EXPORTS = {
+    **dict.fromkeys(("BaseReconstructor", "FrameProgress", "ReconstructionResult"), ".base"),
+    **dict.fromkeys(("LEARNED_METHODS", "METHOD_TITLES", "METHODS", "MODEL_BASED_METHODS",
+                     "MethodSpec", "build_reconstructor", "cli_arguments", "iter_method",
+                     "reconstruct_with_method", "reconstructor_defaults"), ".build"),
+}
+
+
+def __getattr__(name: str):
+    if name not in _EXPORTS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(_EXPORTS[name], __name__), name)
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_EXPORTS])
+
 
 __all__ = [
     "LEARNED_METHODS",

@@ -29,7 +29,7 @@ import torch
 
 from ..config import SystemConfig
 from ..physics.geometry import field_radius
-from .baselines import BaselineReconstructor
+from .baselines import BaselineReconstructor, settings_for
 
 __all__ = ["PERIPHERY_RAMP", "REFINE_ITERATIONS", "REFINE_RANK", "PeripheryRefinement",
            "periphery_weight"]
@@ -86,9 +86,11 @@ class PeripheryRefinement:
         if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
             raise ValueError(f"refinement iterations must be a positive integer, "
                              f"got {iterations!r}")  # fmt: skip
+        # the fixed λ the refinement was measured with (the method's default is the frame's)
         self.solver = BaselineReconstructor("admm", system, device=str(device),
                                             rank=REFINE_RANK, iterations=iterations,
-                                            tolerance=0.0)  # fmt: skip
+                                            tolerance=0.0,
+                                            tv_weight=settings_for(system).tv_weight)  # fmt: skip
         lenses = self.solver.operator.lenses
         weight = periphery_weight(system.sub_view_size)
         self.weight = torch.as_tensor(weight, dtype=lenses.dtype, device=lenses.device)

@@ -12,14 +12,20 @@ Examples
 ('SVFourierNet', ('fp32', 'bf16'))
 >>> method_of_architecture("MultiWienerNet")
 'multiwiener'
+>>> method("admm").defaults["iterations"], method("rl").defaults["iterations"]
+(50, 10)
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any
 
 __all__ = [
     "ARCHITECTURES",
+    "DEFAULT_RANK",
     "LEARNED_METHODS",
     "METHODS",
     "METHOD_TITLES",
@@ -58,6 +64,11 @@ class Method:
         tiling options.
     architecture : str or None
         The model class its model files hold (trained methods).
+    defaults : mapping
+        The value each of its ``options`` takes when not given (those without one here
+        default elsewhere: ``memory_budget`` to the operator's 1 GiB). The one place these
+        are defined: the solvers, ``svcode reconstruct`` and the plugin read them here.
+        ``rank`` is a ceiling: the system's own ``K`` when that is smaller.
     """
 
     name: str
@@ -67,6 +78,10 @@ class Method:
     precisions: tuple[str, ...]
     options: tuple[str, ...] = ()
     architecture: str | None = None
+    defaults: Mapping[str, Any] = field(default_factory=dict, hash=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "defaults", MappingProxyType(dict(self.defaults)))
 
     @property
     def needs_weights(self) -> bool:
@@ -74,16 +89,30 @@ class Method:
         return self.architecture is not None
 
 
+#: the model-based methods' default low-rank order ``K``: at most this, the system's own
+#: ``K`` when that is smaller
+DEFAULT_RANK = 3
+
+# The model-based defaults sit at the knee of the work–precision curve of the committed
+# benchmark (bench/results/regimes.md, realistic regime, one CPU thread, cm2-mini):
+# LSV-ADMM at K = 3, 50 iterations, λ from the frame: 28.03 dB in 11.6 s a frame, against
+# 28.31 dB in 772 s at the system's K (15) and up to 200 iterations with the fixed λ;
+# Wiener's balance 0.1 and Richardson–Lucy's 10 iterations score best in every regime of
+# the sweep (balance 1e-3..0.1; 10 and 30 iterations), the latter at a third of the time.
 _ALL = (
     Method(SVCODE, "SV-CoDe (network)", "SV-CoDe", SVCODE, ("fp32", "bf16", "fp16"),
            options=("pool_window", "refine_periphery"), architecture="SVCoDe"),
     Method("admm", "LSV-ADMM (TV)", "LSV-ADMM", MODEL_BASED, ("fp32", "fp64"),
            options=("rank", "memory_budget", "iterations", "tv_weight", "rho", "tolerance",
-                    "cg_iterations")),
+                    "cg_iterations"),
+           defaults={"rank": DEFAULT_RANK, "iterations": 50, "tv_weight": "auto", "rho": 0.1,
+                     "tolerance": 1e-4, "cg_iterations": 1}),
     Method("wiener", "Wiener (per view, fused)", "Wiener", MODEL_BASED, ("fp32", "fp64"),
-           options=("rank", "memory_budget", "balance", "boundary")),
+           options=("rank", "memory_budget", "balance", "boundary"),
+           defaults={"rank": DEFAULT_RANK, "balance": 0.1, "boundary": "reflect"}),
     Method("rl", "Richardson-Lucy (per view, fused)", "Richardson-Lucy", MODEL_BASED,
-           ("fp32", "fp64"), options=("rank", "memory_budget", "iterations")),
+           ("fp32", "fp64"), options=("rank", "memory_budget", "iterations"),
+           defaults={"rank": DEFAULT_RANK, "iterations": 10}),
     Method("multiwiener", "MultiWienerNet (learned)", "MultiWienerNet", LEARNED,
            ("fp32", "bf16"), architecture="MultiWienerNet"),
     Method("fouriernet", "SV-FourierNet (learned)", "SV-FourierNet", LEARNED,

@@ -43,6 +43,7 @@ import torch
 from ...physics.cm2 import CM2Operator
 from ...physics.geometry import extract_sub_views, pad_sensor_frame
 from ...physics.lowrank import fft_shape
+from .. import registry
 
 __all__ = [
     "ShiftInvariantDeconvolution",
@@ -240,9 +241,9 @@ class ShiftInvariantDeconvolution:
         Supplies the geometry, each lens's centre PSF and its transmission map.
     method : {"wiener", "rl"}
     balance : float
-        Wiener regularisation weight.
+        Wiener regularisation weight (default: the method's, :mod:`~svcode_core.methods.registry`).
     iterations : int
-        Richardson–Lucy iterations.
+        Richardson–Lucy iterations (default: the method's).
     boundary : {"reflect", "periodic"}
         Wiener boundary handling (RL always uses a zero boundary).
 
@@ -261,9 +262,9 @@ class ShiftInvariantDeconvolution:
         self,
         operator: CM2Operator,
         method: str,
-        balance: float = 1e-2,
-        iterations: int = 30,
-        boundary: str = "reflect",
+        balance: float = registry.method("wiener").defaults["balance"],
+        iterations: int = registry.method("rl").defaults["iterations"],
+        boundary: str = registry.method("wiener").defaults["boundary"],
     ) -> None:
         if method not in ("wiener", "rl"):
             raise ValueError(f"method must be 'wiener' or 'rl', got {method!r}")

@@ -24,6 +24,8 @@ import torch
 from ...config import SystemConfig
 from ...physics.cm2 import CM2Operator
 from ...physics.geometry import pad_sensor_frame
+from ...physics.lowrank import decompose_psfs
+from ...physics.psf_io import model_psfs
 from .. import registry
 from ..base import FrameByFrame, check_frame_shape, precision_dtype, resolve_device
 from ..frames import finite_frame
@@ -31,12 +33,34 @@ from ..registry import MODEL_BASED_METHODS
 from .admm import LsvAdmm, settings_for
 from .deconv import ShiftInvariantDeconvolution
 
-__all__ = ["BaselineReconstructor", "build_operator", "reconstruct_with_baseline"]
+__all__ = ["BaselineReconstructor", "build_operator", "default_rank", "reconstruct_with_baseline"]
 
-WIENER_BALANCE = 1e-2
-RL_ITERATIONS = 30
 _HALF = ("they are FFT-based; torch has no half-precision FFT on the CPU and only "
          "power-of-two sizes on CUDA")
+
+
+def default_rank(system: SystemConfig, psfs: np.ndarray | None = None) -> int | None:
+    """The low-rank order the model-based methods use unless given one:
+    :data:`~svcode_core.methods.registry.DEFAULT_RANK`, or ``None`` (the system's own ``K``,
+    each lens its own) when that is not larger.
+
+    ``psfs`` are the system's PSFs (:func:`~svcode_core.physics.psf_io.model_psfs`), when
+    already at hand.
+
+    Examples
+    --------
+    >>> from svcode_core.config import SystemConfig
+    >>> default_rank(SystemConfig.tiny())  # its lenses need K = 6 to 8
+    3
+    >>> default_rank(SystemConfig.tiny().replace(rank=2)) is None
+    True
+    """
+    cap = registry.DEFAULT_RANK
+    if system.rank is not None:
+        return None if system.rank <= cap else cap
+    psfs = model_psfs(system) if psfs is None else psfs
+    own = max(decompose_psfs(lens, None, system.rank_tolerance).rank for lens in psfs)
+    return None if own <= cap else cap
 
 
 @functools.lru_cache(maxsize=2)
@@ -49,12 +73,15 @@ def build_operator(
 ) -> CM2Operator:
     """The operator of ``system`` (its PSF model; cached: the two most recent are kept).
 
-    ``memory_budget`` bounds the bytes of its kept spectra and working chunks
-    (:meth:`CM2Operator.from_system`; default 1 GiB).
+    ``rank`` ``None`` takes :func:`default_rank`. ``memory_budget`` bounds the bytes of its
+    kept spectra and working chunks (:meth:`CM2Operator.from_system`; default 1 GiB).
     """
     dtype = precision_dtype(precision, "admm", _HALF)
-    return CM2Operator.from_system(system, rank=rank, dtype=dtype, device=resolve_device(device),
-                                   memory_budget=memory_budget)
+    psfs = model_psfs(system)
+    if rank is None:
+        rank = default_rank(system, psfs)
+    return CM2Operator.from_psfs(system, psfs, rank=rank, dtype=dtype,
+                                 device=resolve_device(device), memory_budget=memory_budget)
 
 
 class BaselineReconstructor(FrameByFrame):
@@ -72,14 +99,14 @@ class BaselineReconstructor(FrameByFrame):
         Used when building the operator; half precision raises :class:`ValueError`.
     **options
         The method's options (its ``options`` in :mod:`~svcode_core.methods.registry`;
-        ``None`` means the default):
-        ``rank`` (low-rank order ``K`` of the operator built), ``memory_budget`` (bytes
-        of the operator's spectra and working chunks, default 1 GiB), ADMM ``iterations``,
-        ``tv_weight`` (a number, or ``"auto"``: from each frame's noise and level,
+        ``None`` means the method's default, its ``defaults`` there):
+        ``rank`` (low-rank order ``K`` of the operator built, default
+        :func:`default_rank`), ``memory_budget`` (bytes of the operator's spectra and
+        working chunks, default 1 GiB), ADMM ``iterations``, ``tv_weight`` (a number, or
+        ``"auto"``: from each frame's noise and level,
         :func:`~svcode_core.methods.baselines.admm.auto_tv_weight`), ``rho``,
-        ``tolerance``, ``cg_iterations`` (defaults
-        :func:`~svcode_core.methods.baselines.admm.settings_for`), Wiener ``balance``
-        (1e-2) and ``boundary`` ("reflect"), RL ``iterations`` (30).
+        ``tolerance``, ``cg_iterations``, Wiener ``balance`` and ``boundary``, RL
+        ``iterations``.
 
     Notes
     -----
@@ -117,26 +144,18 @@ class BaselineReconstructor(FrameByFrame):
         self.operator = operator
         self.options = options
         self._previous: torch.Tensor | None = None
+        options = {**registry.method(method).defaults, **options}
+        options.pop("rank", None)
         if method == "admm":
-            defaults = settings_for(system)
-            self.iterations = options.get("iterations", defaults.iterations)
-            self.tolerance = options.get("tolerance", defaults.tolerance)
-            self.solver = LsvAdmm(
-                operator,
-                tv_weight=options.get("tv_weight", defaults.tv_weight),
-                rho=options.get("rho", defaults.rho),
-                cg_iterations=options.get("cg_iterations", defaults.cg_iterations),
-                adaptive_rho=defaults.adaptive_rho,
-                check_every=defaults.check_every,
-            )
+            settings = settings_for(system)  # the knobs that are no options
+            self.iterations = options["iterations"]
+            self.tolerance = options["tolerance"]
+            self.solver = LsvAdmm(operator, tv_weight=options["tv_weight"], rho=options["rho"],
+                                  cg_iterations=options["cg_iterations"],
+                                  adaptive_rho=settings.adaptive_rho,
+                                  check_every=settings.check_every)  # fmt: skip
         else:
-            self.solver = ShiftInvariantDeconvolution(
-                operator,
-                method,
-                balance=options.get("balance", WIENER_BALANCE),
-                iterations=options.get("iterations", RL_ITERATIONS),
-                boundary=options.get("boundary", "reflect"),
-            )
+            self.solver = ShiftInvariantDeconvolution(operator, method, **options)
 
     def _padded(self, frame: np.ndarray, index: int) -> torch.Tensor:
         values = finite_frame(frame, index, np.float64)

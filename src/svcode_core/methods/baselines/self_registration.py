@@ -20,7 +20,7 @@ from ...config import N_LENSES, SystemConfig
 from ...physics.calibration import fit_array
 from ...physics.cm2 import CM2Operator
 from ...physics.registration import Registration, register_views, registered_system
-from . import BaselineReconstructor
+from . import BaselineReconstructor, settings_for
 
 __all__ = [
     "MAX_LENS_RESIDUAL_PX",
@@ -93,7 +93,9 @@ def self_register(
     for round_ in range(rounds):
         if progress is not None:
             progress(f"round {round_ + 1} of {rounds}", round_ / rounds)
-        solver = BaselineReconstructor("admm", moved, operator=operator, iterations=iterations)
+        # the fixed λ: the registration's thresholds were measured with it
+        solver = BaselineReconstructor("admm", moved, operator=operator, iterations=iterations,
+                                       tv_weight=settings_for(moved).tv_weight)
         estimate = solver.reconstruct(frame).reconstruction
         found = register_views(frame, moved, estimate, operator, reference)
         offsets = offsets + found.offsets
