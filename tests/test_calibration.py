@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -151,9 +152,18 @@ def test_micrometre_positions_through_the_command(stage_scan, tmp_path, capsys):
     assert "calibrated tiny from 49 frames" in capsys.readouterr().out
     saved = json.loads((out / "calibration.json").read_text())
     np.testing.assert_allclose(saved["offsets_px"], calibration.offsets, atol=1e-3)
-    # without the pixel size: one line naming the file's header
+    # the default pixel size: the system's
+    sized = system.replace(object_pixel_um=pixel_size).save(tmp_path / "sized.json")
     assert main(["calibrate", str(tmp_path / "scan.tif"), "--positions",
-                 str(tmp_path / "pos.csv"), "--system", str(nominal), "--out", str(out)]) != 0
+                 str(tmp_path / "pos.csv"), "--system", str(sized), "--dark",
+                 str(tmp_path / "dark.tif"), "--out", str(tmp_path / "default")]) == 0
+    capsys.readouterr()
+    again = json.loads((tmp_path / "default" / "calibration.json").read_text())
+    np.testing.assert_allclose(again["offsets_px"], calibration.offsets, atol=1e-3)
+    # without a pixel size anywhere: one line naming the file's header
+    unsized = system.replace(object_pixel_um=None).save(tmp_path / "unsized.json")
+    assert main(["calibrate", str(tmp_path / "scan.tif"), "--positions",
+                 str(tmp_path / "pos.csv"), "--system", str(unsized), "--out", str(out)]) != 0
     error = capsys.readouterr().err
     assert "pos.csv line 1: positions in micrometres" in error and "--pixel-size" in error
     assert error.count("\n") == 1
@@ -368,3 +378,31 @@ def test_progress_is_reported_in_order_and_can_stop_the_calibration(scan):
 
     with pytest.raises(Stop):
         calibrate(frames, positions, system, dark=dark, progress=stop_at_the_psfs)
+
+
+def test_report_gives_the_psf_fwhm_in_pixels_and_micrometres(scan, tmp_path):
+    """Per field point of the PSF grid, over the lenses; micrometres through the
+    system's object pixel (10 µm for the tiny system)."""
+    from svcode_core.physics.calibration import psf_fwhm, report_text, save_calibration
+    from svcode_core.physics.optics import system_psfs
+
+    system, _, _, frames, _, calibration = scan
+    fwhm = psf_fwhm(calibration.psfs)
+    grid = system.optics.psf_grid
+    assert fwhm.shape == (9, grid * grid) and np.isfinite(fwhm).all()
+    # the fitted PSFs are about as wide as the departed instrument's nominal ones
+    nominal = np.median(psf_fwhm(system_psfs(system)))
+    assert 0.7 * nominal < np.median(fwhm) < 1.5 * nominal
+    text = report_text(calibration, system)
+    assert "PSF FWHM by field point" in text and "(object pixel 10 um)" in text
+    row = next(line for line in text.splitlines() if line.startswith("(+0.00, +0.00)"))
+    centre = np.median(fwhm[:, grid * grid // 2])
+    assert f"{centre:6.2f}" in row and f"{centre * 10:7.2f}" in row
+    files = save_calibration(calibration, tmp_path / "cal", system)
+    saved = json.loads(files["calibration"].read_text())
+    assert saved["object_pixel_um"] == 10.0
+    np.testing.assert_allclose(saved["psf_fwhm_um"], 10 * np.asarray(saved["psf_fwhm_px"]),
+                               rtol=1e-3)
+    unknown = calibration.system.replace(object_pixel_um=None)
+    text = report_text(dataclasses.replace(calibration, system=unknown), system)
+    assert "pixel size unknown" in text and f"{centre:6.2f}" in text

@@ -76,3 +76,51 @@ def test_bad_json_and_unknown_preset(tmp_path):
     del missing["sub_view_size"]
     with pytest.raises(ConfigError, match="sub_view_size"):
         SystemConfig.from_json(json.dumps(missing))
+
+
+def test_presets_record_pixel_sizes_over_one_field(tmp_path):
+    paper, mini = SystemConfig.preset("cm2-v2"), SystemConfig.preset("cm2-mini")
+    assert (paper.object_pixel_um, paper.sensor_pixel_um) == (3.25, 2.0)
+    # one object pixel images onto one sensor pixel: the same ~7.8 mm field, coarser pixels
+    for system in (paper, mini):
+        assert system.sub_view_size * system.object_pixel_um == pytest.approx(7800.0)
+        assert system.magnification == pytest.approx(2.0 / 3.25)
+    assert mini.object_pixel_um == pytest.approx(paper.object_pixel_um / 0.16)
+    assert SystemConfig.tiny().magnification == 0.5
+    back = SystemConfig.load(mini.save(tmp_path / "system.json"))
+    assert (back.object_pixel_um, back.sensor_pixel_um) == (mini.object_pixel_um, 12.5)
+
+
+def test_pixel_sizes_label_but_do_not_distinguish_systems():
+    mini = SystemConfig.preset("cm2-mini")
+    other = mini.replace(object_pixel_um=1.5, sensor_pixel_um=None)
+    assert other == mini and hash(other) == hash(mini) and other.magnification is None
+    assert "sensor_pixel_um" not in other.to_dict()
+    with pytest.raises(ConfigError, match="object_pixel_um: must be > 0"):
+        mini.replace(object_pixel_um=0.0)
+    with pytest.raises(ConfigError, match="sensor_pixel_um: must be a finite number"):
+        mini.replace(sensor_pixel_um="2 um")
+
+
+def test_files_without_pixel_sizes_load_as_before():
+    """A system saved before the pixel sizes existed: the preset's values if it names a
+    preset (so bundled models and datasets still match), else none."""
+    data = SystemConfig.preset("cm2-mini").to_dict()
+    del data["object_pixel_um"], data["sensor_pixel_um"]
+    old = SystemConfig.from_dict(data)
+    assert old == SystemConfig.preset("cm2-mini") and old.to_dict() == \
+        SystemConfig.preset("cm2-mini").to_dict()
+    unnamed = SystemConfig.from_dict({**data, "name": "bench rig"})
+    assert unnamed.object_pixel_um is None and unnamed.magnification is None
+    assert set(unnamed.to_dict()) == set(data) | {"name"}
+
+
+def test_bundled_model_system_gets_the_preset_pixel_sizes():
+    from svcode_core.methods.model_file import load_model, read_model_metadata
+    from svcode_core.pretrained import require_bundled_weights
+
+    path = require_bundled_weights("cm2-mini")
+    mini = SystemConfig.preset("cm2-mini")
+    stored = read_model_metadata(path)["system"]
+    assert stored.to_dict() == mini.to_dict()
+    load_model(path, system=mini)  # no difference to refuse

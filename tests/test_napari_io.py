@@ -76,8 +76,11 @@ def test_writer_round_trip_records_system_and_model(tmp_path, tiny_system, make_
     assert system == tiny_system
     assert meta["kind"] == "reconstruction" and meta["model"] == model
 
-    [reopened] = viewer.open(str(path), plugin=PLUGIN)  # back on the object grid
-    assert tuple(reopened.translate) == object_translate(tiny_system)
+    assert meta["pixel_size_um"] == tiny_system.object_pixel_um  # the resolution tags
+
+    [reopened] = viewer.open(str(path), plugin=PLUGIN)  # back on the object grid, in µm
+    assert tuple(reopened.scale) == (10, 10)
+    assert tuple(reopened.translate) == tuple(10 * t for t in object_translate(tiny_system))
     assert reopened.metadata[MODEL_KEY] == model
 
 
@@ -91,6 +94,56 @@ def test_sample_layers_load_with_ground_truth(tiny_system, make_napari_viewer):
     assert raw.data.shape == tiny_system.sensor_shape and raw.data.max() > 0
     assert truth.data.shape == (tiny_system.sub_view_size,) * 2
     assert truth.metadata[SYSTEM_KEY] == raw.metadata[SYSTEM_KEY] == tiny_system
-    assert tuple(truth.translate) == object_translate(tiny_system)
+    # both in object-space µm: the truth sits over the raw frame where lens 4 images it
+    assert tuple(truth.scale) == tuple(raw.scale) == (10, 10)
+    assert tuple(truth.translate) == tuple(10 * t for t in object_translate(tiny_system))
+    assert [str(unit) for unit in truth.units] == ["micrometer"] * 2
     with pytest.raises(ValueError, match="unknown sample"):
         sample_layers("galaxies", tiny_system)
+
+
+def test_reader_places_layers_in_micrometres_with_a_scale_bar(tmp_path, tiny_system,
+                                                              make_napari_viewer):
+    """A raw stack and its reconstruction overlay in object-space µm (the system's 10 µm
+    pixels); a foreign TIFF gets its own resolution; without any size, pixels."""
+    size = tiny_system.sub_view_size
+    write_tiff(tmp_path / "raw.tif", np.zeros((2, *tiny_system.sensor_shape)), tiny_system,
+               kind="measurement")
+    write_tiff(tmp_path / "rec.tif", np.zeros((size, size)), tiny_system, kind="reconstruction")
+    tifffile.imwrite(tmp_path / "fiji.tif", np.zeros((4, 4), np.uint16), imagej=True,
+                     resolution=(1 / 0.5, 1 / 0.5), metadata={"unit": "um"})
+    tifffile.imwrite(tmp_path / "bare.tif", np.zeros((4, 4), np.uint16))
+    viewer = make_napari_viewer()
+    [raw] = viewer.open(str(tmp_path / "raw.tif"), plugin=PLUGIN)
+    assert viewer.canvas.overlays.scale_bar.visible
+    [rec] = viewer.open(str(tmp_path / "rec.tif"), plugin=PLUGIN)
+    assert tuple(raw.scale) == (1, 10, 10) and tuple(raw.translate) == (0, 0, 0)
+    assert [str(unit) for unit in raw.units] == ["pixel", "micrometer", "micrometer"]
+    origin = np.asarray(object_translate(tiny_system))
+    # object pixel (i, j) lies on sensor pixel origin + (i, j), in µm in the viewer
+    np.testing.assert_allclose(rec.data_to_world((3, 4)), 10 * (origin + (3, 4)))
+    np.testing.assert_allclose(raw.world_to_data((0, *rec.data_to_world((3, 4))))[1:],
+                               origin + (3, 4))
+    [fiji] = viewer.open(str(tmp_path / "fiji.tif"), plugin=PLUGIN)
+    assert tuple(fiji.scale) == (0.5, 0.5) and str(fiji.units[-1]) == "micrometer"
+    [(_, kwargs, _)] = get_reader(str(tmp_path / "bare.tif"))(str(tmp_path / "bare.tif"))
+    assert kwargs["scale"] == (1.0, 1.0) and "units" not in kwargs
+
+
+def test_placement_without_layer_units(monkeypatch, tiny_system):
+    """napari before 0.6 has no layer units: scale and translation only."""
+    import napari_svcode._layers as layers
+
+    monkeypatch.setattr(layers, "LAYER_UNITS", False)
+    place = layers.placement(tiny_system, 3)
+    assert place == {"scale": (1.0, 10.0, 10.0), "translate": (0.0, 0.0, 0.0)}
+    assert layers.in_micrometres(place)
+
+
+def test_writer_takes_the_pixel_size_from_a_layer_in_micrometres(tmp_path, make_napari_viewer):
+    viewer = make_napari_viewer()
+    layer = viewer.add_image(np.zeros((5, 6), np.float32), name="plain", scale=(2.5, 2.5),
+                             units="µm")
+    layer.save(str(tmp_path / "plain.tif"), plugin=PLUGIN)
+    _, system, meta = read_tiff(tmp_path / "plain.tif")
+    assert system is None and meta["pixel_size_um"] == 2.5

@@ -155,7 +155,11 @@ def test_calibration_rays_and_one_box_move_together_and_save(tmp_path, tiny_syst
     assert len(boxes.data) == 1 and len(rays.data) == 9  # one box at a time
     assert list(rays.text.values) == [f"lens {lens}" for lens in range(9)]
     assert rays.text.translation[0] < 0  # each label just above its ray
-    assert tuple(boxes.translate) == tuple(rays.translate) == (5, 7)
+    # the system's 10 µm pixels: the raw layer in µm, still 5, 7 pixels off; rays and box on it
+    assert tuple(raw.scale) == tuple(boxes.scale) == tuple(rays.scale) == (10, 10)
+    assert tuple(raw.translate) == tuple(boxes.translate) == tuple(rays.translate) == (50, 70)
+    assert [str(unit) for unit in rays.units] == ["micrometer"] * 2
+    assert viewer.canvas.overlays.scale_bar.visible
     size, pad = tiny_system.sub_view_size, np.asarray(tiny_system.padding)
 
     def check_box(lens: int, system: SystemConfig) -> None:
@@ -269,7 +273,7 @@ def test_calibrate_from_a_scan_file_draws_the_fitted_rays_and_saves(
     rays, spots = viewer.layers["chief rays"], viewer.layers["spots"]
     np.testing.assert_allclose(rays.data, np.asarray(fitted.chief_rays) - np.asarray(
         fitted.padding))
-    assert tuple(rays.translate) == tuple(spots.translate) == (5, 7)
+    assert tuple(rays.translate) == tuple(spots.translate) == (50, 70)  # 5, 7 pixels of 10 µm
     assert widget._spot_frame.value == 12 and widget._spot_frame.max == 24
     kinds = list(spots.features["kind"])
     assert kinds.count("measured") == kinds.count("predicted") == 9  # the centre frame
@@ -321,6 +325,15 @@ def test_calibrate_a_scan_layer_without_a_raw_frame_and_cancel(qtbot, tmp_path, 
     np.testing.assert_array_equal(centre[(grid // 2) * k:(grid // 2 + 1) * k,
                                          (grid // 2) * k:(grid // 2 + 1) * k],
                                   psfs[4, (grid // 2) * grid + grid // 2])
+    # over it, the FWHM of each PSF in µm (10 µm pixels), one cell centred on its PSF
+    from svcode_core.physics.calibration import psf_fwhm
+
+    fwhm = viewer.layers["PSF FWHM"]
+    assert fwhm.data.shape == (3 * grid,) * 2 and tuple(layer.scale) == (10, 10)
+    assert tuple(fwhm.scale) == (10 * k, 10 * k) and tuple(fwhm.translate) == (5 * (k - 1),) * 2
+    assert fwhm.data[grid + grid // 2, grid + grid // 2] == pytest.approx(
+        10 * psf_fwhm(psfs[4, (grid // 2) * grid + grid // 2]))
+    assert tuple(scan.scale) == (1, 10, 10)  # the reader placed the scan in µm
 
     calibrated = widget.calibration  # a cancelled second run keeps the first calibration
     widget._system_choice.source.value = widget._system_choice.FROM_FILE
@@ -335,6 +348,25 @@ def test_calibrate_a_scan_layer_without_a_raw_frame_and_cancel(qtbot, tmp_path, 
     assert "calibration of 'tiny'" in (tmp_path / "cal" / "report.txt").read_text()
 
 
+def test_calibration_positions_in_micrometres_use_the_pixel_size(tmp_path, scan_files,
+                                                                 make_napari_viewer, errors):
+    viewer = make_napari_viewer()
+    widget = _dock(viewer, CalibrationWidget)
+    _set_scan(widget, scan_files)
+    assert "x_um,y_um" in widget._positions.tooltip and "whole" not in widget._positions.tooltip
+    system, positions = scan_files["system"], scan_files["positions"]
+    y, x = ((positions - system.sub_view_size // 2) * 10.0).T  # the tiny system's 10 µm
+    stage = tmp_path / "stage.csv"
+    stage.write_text("x_um,y_um\n" + "".join(f"{a},{b}\n" for a, b in zip(x, y, strict=True)))
+    widget._positions.value = stage
+    np.testing.assert_allclose(widget._read_scan()["positions"], positions)  # the system's
+    widget._pixel_size.value = 20.0  # given: half as many pixels from the centre
+    centre = system.sub_view_size // 2
+    np.testing.assert_allclose(widget._read_scan()["positions"],
+                               centre + (positions - centre) / 2)
+    assert not errors
+
+
 def test_calibration_errors_are_one_notification_each(qtbot, tmp_path, scan_files,
                                                       make_napari_viewer, errors):
     viewer = make_napari_viewer()
@@ -342,11 +374,11 @@ def test_calibration_errors_are_one_notification_each(qtbot, tmp_path, scan_file
     assert widget.start_calibration() is None and "No scan chosen" in errors[-1]
     _set_scan(widget, scan_files)
     bad = tmp_path / "bad.csv"
-    bad.write_text("row,col\n0,1\n2.5,3\n")
+    bad.write_text("row,col\n0,1\n2.5,x\n")
     widget._positions.value = bad
     assert widget.start_calibration() is None
     assert len(errors) == 2 and errors[-1].count("\n") == 1
-    assert "bad.csv line 3 (frame 1)" in errors[-1] and "whole-pixel" in errors[-1]
+    assert "bad.csv line 3: 'x' is not a number" in errors[-1] and "x_um,y_um" in errors[-1]
 
     widget._positions.value = scan_files["csv"]
     widget._system_choice.source.value = "cm2-mini"  # another sensor
@@ -445,11 +477,11 @@ def test_a_moved_sub_view_box_keeps_the_bundled_model(qtbot, monkeypatch, tmp_pa
     np.testing.assert_allclose(recon.data, expected.reconstruction, atol=1e-6)
 
     # any other difference is refused, the differing field named first, in a toast
-    raw.metadata = {**raw.metadata, SYSTEM_KEY: moved.replace(rank_tolerance=1e-3)}
+    raw.metadata = {**raw.metadata, SYSTEM_KEY: moved.replace(patch_size=24, patch_stride=12)}
     assert widget.start() is None
     cause, fix = errors[-1].split("\n")
     assert cause == "tiny.safetensors was trained for system 'tiny', which differs in " \
-                    "rank_tolerance"
+                    "patch_size, patch_stride"
     assert fix == "→ choose a model trained for this system"
 
 
@@ -578,8 +610,7 @@ def test_pickers_fit_their_role_and_tiling_defaults_come_from_the_core(make_napa
 
 
 def test_each_method_shows_only_its_options(make_napari_viewer):
-    from svcode_core.methods import METHODS
-    from svcode_core.methods.baselines import RL_ITERATIONS, settings_for
+    from svcode_core.methods import METHODS, registry
 
     viewer = make_napari_viewer()
     viewer.open_sample("napari-svcode", "cells")
@@ -594,11 +625,17 @@ def test_each_method_shows_only_its_options(make_napari_viewer):
     for method, names in expected.items():
         panel.method.value = method
         assert {name for name, w in panel._widgets.items() if _shown(w)} == names, method
+    # each model-based method's widgets start at its defaults (svcode_core's registry)
+    for method in registry.MODEL_BASED_METHODS:
+        panel.method.value = method
+        options = panel.options()
+        assert options.pop("rank") is None  # the default rank
+        options.pop("precision")
+        shown = {k: v for k, v in registry.method(method).defaults.items()
+                 if k in ("iterations", "tv_weight", "balance", "boundary")}
+        assert options == shown, method
     panel.method.value = "admm"
-    assert panel.iterations.value == settings_for(SystemConfig.preset("cm2-mini")).iterations
     assert panel.precision.choices == ("fp32", "fp64")
-    panel.method.value = "rl"
-    assert panel.iterations.value == RL_ITERATIONS
     assert not _shown(widget._second)
     widget._compare.value = True
     assert _shown(widget._second) and widget._second.method.value == "admm"
@@ -810,13 +847,15 @@ def test_cli_command_for_a_folder(tiny_system, make_napari_viewer):
     command = command.replace('"$f"', "in.tif").replace('"${f%.tif}.recon.tif"', "out.tif")
     args = build_parser().parse_args(shlex.split(command)[1:])
     assert (args.method, args.iterations, args.system) == ("admm", 40, "cm2-mini")
-    assert args.tv_weight == widget._panel.tv_weight.value
-    widget._panel.tv_auto.value = True  # λ from each frame's noise
+    assert args.tv_weight == "auto"  # the default: λ from each frame's noise
     assert widget._panel.options()["tv_weight"] == "auto"
     assert not widget._panel.tv_weight.enabled
+    widget._panel.tv_auto.value = False  # a fixed λ
+    assert widget._panel.tv_weight.enabled
     command = widget.copy_command().split("; do ", 1)[1].removesuffix("; done")
     command = command.replace('"$f"', "in.tif").replace('"${f%.tif}.recon.tif"', "out.tif")
-    assert build_parser().parse_args(shlex.split(command)[1:]).tv_weight == "auto"
+    fixed = build_parser().parse_args(shlex.split(command)[1:]).tv_weight
+    assert float(fixed) == widget._panel.tv_weight.value
 
 
 # ---------------------------------------------------------------------- masks
@@ -835,7 +874,10 @@ def test_mask_widget_shows_a_cached_mask(qtbot, tiny_system, model_file, make_na
     model = widget._loaded[1]
     expected = model.coordinate_mask("recon", "view", "conv2", tiny_system.sub_view_size, lens=5)
     np.testing.assert_allclose(layer.data, expected[1].numpy(), atol=1e-6)
-    assert tuple(layer.translate) == object_translate(tiny_system)
+    # in µm, over the raw frame's object grid, like every layer the plugin adds
+    pixel = tiny_system.object_pixel_um
+    assert tuple(layer.translate) == tuple(pixel * t for t in object_translate(tiny_system))
+    assert tuple(layer.scale) == (pixel, pixel)
     np.testing.assert_allclose(layer.contrast_limits, (layer.data.min(), layer.data.max()))
     assert "reconstruction network" in widget._stage.tooltip
     assert widget._block.tooltip.startswith("view: ") and "lens-specific" in widget._block.tooltip
@@ -893,6 +935,29 @@ def test_a_failure_inside_a_worker_is_one_notice(qtbot, monkeypatch, tmp_path, t
 
 
 # ------------------------------------------------------------------- simulate
+def test_reconstruction_lands_on_its_raw_frame_in_micrometres(qtbot, tiny_system, model_file,
+                                                             make_napari_viewer):
+    """Over a raw stack in µm (the system's 10 µm pixels, moved 3 frames and 5, 7 pixels),
+    the reconstruction and the demixed views take its scale, units and origin."""
+    from napari_svcode._layers import placement
+
+    viewer = make_napari_viewer()
+    stack = _raw_stack(tiny_system, 2)
+    viewer.add_image(stack, name="raw", metadata=layer_metadata(tiny_system, "measurement"),
+                     **placement(tiny_system, 3, origin=(5, 7), lead=(3,)))
+    widget = _dock(viewer, ReconstructWidget)
+    _use_model(widget, model_file)
+    widget._views.value = True
+    assert widget.start() is not None
+    qtbot.waitUntil(lambda: widget._run.enabled, timeout=30_000)
+    recon, views = viewer.layers["reconstruction"], viewer.layers["demixed views"]
+    origin = 10 * (np.asarray(object_translate(tiny_system)) + (5, 7))
+    assert tuple(recon.scale) == (1, 10, 10) and tuple(views.scale) == (1, 1, 10, 10)
+    assert tuple(recon.translate) == (3, *origin) and tuple(views.translate) == (0, 3, *origin)
+    assert [str(unit) for unit in recon.units] == ["pixel", "micrometer", "micrometer"]
+    assert viewer.canvas.overlays.scale_bar.visible
+
+
 def test_simulate_widget_makes_a_raw_frame(qtbot, tmp_path, tiny_system, make_napari_viewer):
     viewer = make_napari_viewer()
     viewer.add_image(np.random.default_rng(2).random((70, 90)), name="cells")
@@ -904,6 +969,7 @@ def test_simulate_widget_makes_a_raw_frame(qtbot, tmp_path, tiny_system, make_na
     layer = viewer.layers["cells (simulated raw)"]
     assert layer.data.shape == tiny_system.sensor_shape and layer.data.max() > 0
     assert layer.metadata[SYSTEM_KEY] == tiny_system
+    assert tuple(layer.scale) == (10, 10) and str(layer.units[-1]) == "micrometer"
 
 
 def test_simulate_widget_announces_or_refuses_a_large_simulation(

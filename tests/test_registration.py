@@ -144,5 +144,5 @@ def test_a_model_applies_to_its_system_with_moved_chief_rays(tiny_system, tiny_w
     moved = tiny_system.replace(chief_rays=tuple(rays))
     reconstructor = Reconstructor.from_weights(tiny_weights, moved)
     assert reconstructor.system == moved  # sub-views cut at the moved rays
-    with pytest.raises(ValueError, match="rank_tolerance"):
-        Reconstructor.from_weights(tiny_weights, moved.replace(rank_tolerance=0.5))
+    with pytest.raises(ValueError, match="patch_size"):
+        Reconstructor.from_weights(tiny_weights, moved.replace(patch_size=24, patch_stride=12))

@@ -7,7 +7,13 @@ from pathlib import Path
 
 from svcode_core.io import read_tiff
 
-from ._layers import layer_metadata, object_translate
+from ._layers import (
+    in_micrometres,
+    layer_metadata,
+    object_translate,
+    placement,
+    show_scale_bar,
+)
 
 __all__ = ["get_reader", "read_cm2_tiff"]
 
@@ -30,18 +36,27 @@ def read_cm2_tiff(path: str | list[str]) -> list[tuple]:
     in the layer metadata (``svcode_system``); files without one open as plain images
     (set the system in the Calibration widget). Data on the object grid written by this
     package (reconstructions, ground truth, demixed views) are placed over the raw frame.
+    Layers are in object-space µm (scale, units and the scale bar) when the system, else
+    the file's resolution, gives the pixel size; in pixels otherwise.
     """
     paths = [path] if isinstance(path, str) else list(path)
     layers = []
+    sized = False
     for item in paths:
         array, system, meta = read_tiff(item)
         kind = meta.get("kind") or "measurement"
         model = meta.get("model")
+        origin = (0.0, 0.0)
+        if system is not None and kind in OBJECT_GRID_KINDS:
+            origin = object_translate(system)
+        place = placement(system, array.ndim, origin, pixel_size_um=meta.get("pixel_size_um"))
+        sized = sized or in_micrometres(place)
         kwargs = {
             "name": Path(item).name.split(".")[0],
             "metadata": layer_metadata(system, kind, model),
+            **place,
         }
-        if system is not None and kind in OBJECT_GRID_KINDS:
-            kwargs["translate"] = (0.0,) * (array.ndim - 2) + object_translate(system)
         layers.append((array, kwargs, "image"))
+    if sized:
+        show_scale_bar()
     return layers

@@ -12,7 +12,7 @@ from svcode_core.config import SystemConfig
 from svcode_core.phantoms import make_object
 from svcode_core.physics.simulate import Simulation
 
-from ._layers import layer_metadata, object_translate
+from ._layers import in_micrometres, layer_metadata, object_translate, placement, show_scale_bar
 from ._resources import simulator
 
 __all__ = [
@@ -47,7 +47,8 @@ def sample_layers(kind: str, system: SystemConfig | None = None) -> list[tuple]:
     -------
     list of napari layer-data tuples
         The ground truth on the object grid, placed over the raw frame, and the raw frame;
-        both record the system in their metadata.
+        both record the system in their metadata and are in object-space µm (the
+        current viewer's scale bar is shown).
     """
     if kind not in SAMPLE_KINDS:
         raise ValueError(f"unknown sample {kind!r}; choose one of {', '.join(SAMPLE_KINDS)}")
@@ -55,16 +56,19 @@ def sample_layers(kind: str, system: SystemConfig | None = None) -> list[tuple]:
     scene = _simulate(kind, system)
     truth = {
         "name": f"{kind} ground truth",
-        "translate": object_translate(system),
+        **placement(system, 2, object_translate(system)),
         "metadata": layer_metadata(system, "object"),
         "colormap": "magma",
         "visible": False,
     }
     raw = {
         "name": f"{kind} raw",
+        **placement(system, 2),
         "metadata": layer_metadata(system, "measurement"),
         "colormap": "gray",
     }
+    if in_micrometres(raw):
+        show_scale_bar()
     return [(scene.object, truth, "image"), (scene.measurement, raw, "image")]
 
 

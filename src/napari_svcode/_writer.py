@@ -6,7 +6,7 @@ from typing import Any
 
 from svcode_core.io import write_tiff
 
-from ._layers import KIND_KEY, MODEL_KEY, layer_system
+from ._layers import KIND_KEY, MICROMETRE, MODEL_KEY, layer_system
 
 __all__ = ["write_image"]
 
@@ -16,7 +16,9 @@ def write_image(path: str, data: Any, attributes: dict) -> list[str]:
 
     The layer's system (``svcode_system``), kind (``svcode_kind``, default
     ``"reconstruction"``) and model description (``svcode_model``) go into the file's
-    metadata, so the file can be reopened and traced to the model that made it.
+    metadata, so the file can be reopened and traced to the model that made it. The
+    pixel size (the system's, else the layer's scale when its units are µm) goes into the
+    resolution tags (:func:`svcode_core.io.write_tiff`).
 
     Returns
     -------
@@ -29,5 +31,16 @@ def write_image(path: str, data: Any, attributes: dict) -> list[str]:
     if metadata.get(MODEL_KEY) is not None:
         extra["model"] = metadata[MODEL_KEY]
     kind = metadata.get(KIND_KEY) or "reconstruction"
-    write_tiff(path, data, system, kind=kind, extra=extra)
+    size = system.object_pixel_um if system is not None else None
+    write_tiff(path, data, system, kind=kind, extra=extra,
+               pixel_size_um=size if size is not None else _layer_pixel_size(attributes))
     return [path]
+
+
+def _layer_pixel_size(attributes: dict) -> float | None:
+    """The layer's column scale if its units say micrometres, else ``None``."""
+    units, scale = attributes.get("units"), attributes.get("scale")
+    if not units or scale is None or len(scale) == 0:
+        return None
+    unit = str(units[-1])
+    return float(scale[-1]) if unit in (MICROMETRE, "micrometer", "um") else None

@@ -17,6 +17,11 @@ Conventions (used everywhere in the package)
   sensor frame; sub-view ``ℓ`` is the ``S × S`` crop whose pixel ``(S // 2, S // 2)``
   is the chief ray ``c_ℓ``. Object pixel ``(i, j)`` imaged by lens ``ℓ`` lands at padded
   sensor pixel ``c_ℓ - S // 2 + (i, j)`` (plus its distortion, carried by the PSF).
+* Physical sizes are in micrometres: ``object_pixel_um`` (object space, also the
+  object-space size of a sensor pixel, as one maps onto the other) and
+  ``sensor_pixel_um`` (the camera); the magnification is their ratio. The presets carry
+  plausible values for the instrument they model, not a datasheet's
+  (:data:`PRESET_PIXEL_SIZES`).
 """
 
 from __future__ import annotations
@@ -263,6 +268,21 @@ class SystemConfig(JsonFile):
         it) that replaces the pupil model of ``optics``; ``None``: the pupil model. In a
         JSON file the path is relative to the file; :meth:`load` makes it absolute and
         :meth:`save` writes it relative to the new file.
+    object_pixel_um : float or None
+        Object-space size of one pixel in micrometres: the object-grid pitch, and the
+        object-space size of a sensor pixel (one object pixel images onto one sensor
+        pixel). ``None``: unknown, sizes are in pixels only.
+    sensor_pixel_um : float or None
+        Pitch of the camera's pixels in micrometres; with ``object_pixel_um`` it gives
+        :attr:`magnification`.
+
+    Notes
+    -----
+    The two sizes label the data in physical units (file resolution tags, napari scale
+    bars, the calibration report); no computation uses them, so they are left out of
+    ``==``: two systems that differ only in them image alike. A JSON file written before
+    they existed gets the values of the preset of its ``name`` (``cm2-v2``,
+    ``cm2-mini``), else ``None``.
     """
 
     name: str
@@ -278,8 +298,23 @@ class SystemConfig(JsonFile):
     optics: OpticsConfig = field(default_factory=OpticsConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     psf_model: str | None = None
+    object_pixel_um: float | None = field(default=None, compare=False)
+    sensor_pixel_um: float | None = field(default=None, compare=False)
 
     # ------------------------------------------------------------------ derived
+    @property
+    def magnification(self) -> float | None:
+        """Sensor pixel over object pixel (``None`` unless both sizes are known).
+
+        Examples
+        --------
+        >>> round(SystemConfig.preset("cm2-v2").magnification, 4)
+        0.6154
+        """
+        if self.object_pixel_um is None or self.sensor_pixel_um is None:
+            return None
+        return self.sensor_pixel_um / self.object_pixel_um
+
     @property
     def padded_shape(self) -> tuple[int, int]:
         """Shape ``(rows, cols)`` of the zero-padded sensor frame."""
@@ -352,6 +387,9 @@ class SystemConfig(JsonFile):
         if self.psf_model is not None and (not isinstance(self.psf_model, str)
                                            or not self.psf_model):  # fmt: skip
             _fail("psf_model", f"must be a file path or null, got {self.psf_model!r}")
+        for name in PIXEL_SIZE_FIELDS:
+            if getattr(self, name) is not None:
+                check_number(name, getattr(self, name), low=0, strict=True)
         return self
 
     # --------------------------------------------------------------- JSON I/O
@@ -362,8 +400,9 @@ class SystemConfig(JsonFile):
         data["padding"] = list(self.padding)
         data["chief_rays"] = [list(p) for p in self.chief_rays]
         data["lens_axes"] = [list(p) for p in self.lens_axes]
-        if self.psf_model is None:
-            del data["psf_model"]  # pupil-model systems keep their JSON unchanged
+        for name in ("psf_model", *PIXEL_SIZE_FIELDS):
+            if data[name] is None:
+                del data[name]  # optional fields, left out when unset: JSON as before
         return data
 
     def save(self, path: str | Path) -> Path:
@@ -394,6 +433,8 @@ class SystemConfig(JsonFile):
         for key, klass in nested.items():
             if key in data:
                 data[key] = _build(klass, data[key], key)
+        if not any(name in data for name in PIXEL_SIZE_FIELDS):
+            data.update(_preset_pixel_sizes(data.get("name")))
         config = _build(cls, data, "system")
         config = dataclasses.replace(
             config,
@@ -424,7 +465,8 @@ class SystemConfig(JsonFile):
     @classmethod
     def tiny(cls) -> SystemConfig:
         """A small system for examples and tests, not an instrument: a 60 × 80 sensor,
-        48-pixel sub-views, 9-pixel kernels on a 3 × 3 PSF grid (fast to simulate).
+        48-pixel sub-views, 9-pixel kernels on a 3 × 3 PSF grid (fast to simulate), with
+        round pixel sizes (10 µm object pixels, 5 µm sensor pixels).
 
         Examples
         --------
@@ -434,7 +476,8 @@ class SystemConfig(JsonFile):
         """
         optics = OpticsConfig(psf_grid=3, kernel_size=9, airy_radius=1.0, pupil_samples=32,
                               distortion=0.5)  # fmt: skip
-        return system_from_scale("tiny", (60, 80), 48, 18, 16, optics, 1e-2).validate()
+        system = system_from_scale("tiny", (60, 80), 48, 18, 16, optics, 1e-2)
+        return dataclasses.replace(system, **TINY_PIXEL_SIZES).validate()
 
     @classmethod
     def preset(cls, name: str) -> SystemConfig:
@@ -537,6 +580,29 @@ def system_from_scale(
     )
 
 
+#: The pixel-size fields of :class:`SystemConfig` (physical labels, outside ``==``).
+PIXEL_SIZE_FIELDS = ("object_pixel_um", "sensor_pixel_um")
+
+#: Pixel sizes of the presets, in micrometres. Plausible values for the instrument each
+#: preset models, not a datasheet: ``cm2-v2`` is a paper-scale CM² (3000 × 4000 CMOS of
+#: 2 µm pixels, nine 2400² sub-views imaging a 7.8 mm field, so 3.25 µm object pixels
+#: and a magnification of 0.615); ``cm2-mini`` is that instrument at 0.16 × the pixel
+#: count: the same 7.8 mm field and magnification on 384² sub-views, so pixels
+#: 1 / 0.16 times coarser (20.3125 µm in object space, 12.5 µm on the sensor).
+PRESET_PIXEL_SIZES = {
+    "cm2-v2": {"object_pixel_um": 3.25, "sensor_pixel_um": 2.0},
+    "cm2-mini": {"object_pixel_um": 3.25 / 0.16, "sensor_pixel_um": 2.0 / 0.16},
+}
+#: Round values for the ``tiny`` test system (no instrument).
+TINY_PIXEL_SIZES = {"object_pixel_um": 10.0, "sensor_pixel_um": 5.0}
+
+
+def _preset_pixel_sizes(name: Any) -> dict[str, float]:
+    """The pixel sizes a system file of ``name`` gets when it records none: a preset's
+    (``tiny``, a name test systems of any geometry share, gets none)."""
+    return dict(PRESET_PIXEL_SIZES.get(name, {})) if isinstance(name, str) else {}
+
+
 def _cm2_v2() -> SystemConfig:
     """Paper scale: padded 4200², sub-views 2400², lens pitch 900 px, patches 480/240."""
     return system_from_scale(
@@ -548,7 +614,7 @@ def _cm2_v2() -> SystemConfig:
         optics=OpticsConfig(psf_grid=9, kernel_size=129, airy_radius=8.0, pupil_samples=128,
                             distortion=8.0),
         rank_tolerance=1e-2,
-    )
+    ).replace(**PRESET_PIXEL_SIZES["cm2-v2"])
 
 
 def _cm2_mini() -> SystemConfig:
@@ -561,7 +627,7 @@ def _cm2_mini() -> SystemConfig:
         patch_size=96,
         optics=OpticsConfig(),
         rank_tolerance=1e-2,
-    )
+    ).replace(**PRESET_PIXEL_SIZES["cm2-mini"])
 
 
 def available_presets() -> list[str]:

@@ -36,6 +36,7 @@ from svcode_core.physics.calibration import (
     Calibration,
     CalibrationError,
     calibrate,
+    psf_fwhm,
     read_positions,
     report_text,
     save_calibration,
@@ -46,8 +47,13 @@ from .._errors import notify_warning
 from .._layers import (
     SYSTEM_KEY,
     chief_rays_from_boxes,
+    in_micrometres,
     layer_metadata,
     notify_error,
+    place_layer,
+    placement,
+    placement_over,
+    show_scale_bar,
     sub_view_boxes,
 )
 from .._workers import Failed, returning_failure
@@ -59,6 +65,7 @@ BOXES = "sub-views"
 RAYS = "chief rays"
 SPOTS = "spots"
 PSF_GRID = "calibrated PSFs"
+FWHM_MAP = "PSF FWHM"
 #: the spots layer: measured centroids and those the fitted chief rays predict
 SPOT_STYLE = {"measured": ("disc", "#00e5ff"), "predicted": ("cross", "#ff4fd8")}
 #: progress-bar steps of a calibration
@@ -84,19 +91,24 @@ class CalibrationWidget(Container):
     *Show sub-views* applies the chosen system to the raw layer and draws a Points layer
     ``"chief rays"`` (one point per lens, labelled ``lens ℓ`` beside it) and a Shapes layer
     ``"sub-views"`` with the ``S × S`` box of one lens at a time (the *lens* box, or the
-    ray last clicked or moved), both placed like the raw layer. Dragging a ray moves its
-    box, dragging the box moves its ray; either updates the system, and *Save* writes it
-    to a ``system.json``.
+    ray last clicked or moved), both placed like the raw layer. Applying a system with a
+    pixel size puts the raw layer in object-space µm (scale, units, scale bar). Dragging a
+    ray moves its box, dragging the box moves its ray; either updates the system, and
+    *Save* writes it to a ``system.json``.
 
     *Calibrate from a scan*: a scan (a layer or a TIFF file of ``N × H × W`` raw frames),
-    its positions CSV (:func:`~svcode_core.physics.calibration.read_positions`), an optional dark
-    frame or stack and the low-rank tolerance. *Calibrate* runs
+    its positions CSV (:func:`~svcode_core.physics.calibration.read_positions`: object
+    pixels ``row,col``, or stage micrometres ``x_um,y_um`` scaled by the *pixel size*,
+    default the system's), an optional dark frame or stack and the low-rank tolerance.
+    *Calibrate* runs
     :func:`~svcode_core.physics.calibration.calibrate` in a worker thread with the chosen system
     as the nominal one (progress below the button; *Cancel* stops at the next frame or
     lens). The calibrated system is applied to the raw layer (the scan itself when no
     raw frame of that sensor is open; a scan read from a file is added as a layer), its
     chief rays are drawn, a ``"spots"`` layer shows the measured spot centroids and those
-    the fit predicts for one frame, and the report is shown. *Save calibration* writes
+    the fit predicts for one frame, and the report is shown (with the PSF FWHM per field
+    point in pixels and µm). *Show PSF grid* adds the fitted PSFs and, over them, a map of
+    their FWHM (one cell per PSF, in µm when the pixel size is known). *Save calibration* writes
     the folder of :func:`~svcode_core.physics.calibration.save_calibration` (``system.json`` with
     its PSF stack) and gives the raw layer that saved system.
 
@@ -123,9 +135,17 @@ class CalibrationWidget(Container):
         self._scan = LayerOrFile(napari_viewer, "scan", fit=scan_fit,
                                  tooltip="raw frames N×H×W, one per point-source position")
         self._positions = FileEdit(label="positions", mode="r", filter="*.csv",
-                                   tooltip="CSV: a header line row,col, then the source "
-                                           "position of each frame in whole pixels of the "
-                                           "S×S object grid")
+                                   tooltip="CSV: a header line, then the source position of "
+                                           "each frame: row,col in pixels of the S×S object "
+                                           "grid (fractions allowed), or x_um,y_um in "
+                                           "micrometres from the field's centre (scaled by "
+                                           "the pixel size below)")
+        self._pixel_size = FloatSpinBox(
+            label="pixel size (µm)", min=0.0, max=1e4, step=0.01, value=0.0,
+            tooltip="object-space pixel size in micrometres (sensor pixel over "
+                    "magnification), for positions in x_um,y_um")
+        self._pixel_size.native.setDecimals(4)
+        self._pixel_size.native.setSpecialValueText("the system's")
         self._dark = LayerOrFile(napari_viewer, "dark",
                                  tooltip="optional: a frame (H×W) or frames (M×H×W, "
                                          "averaged) with the source off")
@@ -163,7 +183,8 @@ class CalibrationWidget(Container):
                     "two minutes on cm2-mini")
         super().__init__(widgets=[
             self._layer, self._system_choice, self._show, self._lens, self._out, self._save,
-            self._scan_title, self._scan, self._positions, self._dark, self._tolerance,
+            self._scan_title, self._scan, self._positions, self._pixel_size, self._dark,
+            self._tolerance,
             self._calibrate, self._cancel, self._progress, self._status, self._spot_frame,
             self._report, self._show_psfs, self._folder, self._save_calibration,
             self._register_title, self._register_folder, self._register,
@@ -229,6 +250,9 @@ class CalibrationWidget(Container):
     def _apply(self, system: SystemConfig) -> None:
         self.system = system
         self._raw.metadata = {**self._raw.metadata, SYSTEM_KEY: system}
+        place_layer(self._raw, system)
+        if in_micrometres(self._raw):
+            show_scale_bar(self._viewer)
 
     # ---------------------------------------------------------------- drawing
     def _draw(self) -> None:
@@ -236,16 +260,16 @@ class CalibrationWidget(Container):
         for name in (BOXES, RAYS):
             if name in layers:
                 layers.remove(name)
-        translate = tuple(self._raw.translate[-2:])
+        place = placement_over(self._raw)
         size = max(8, system.sub_view_size // 24)
         boxes = self._viewer.add_shapes(
             [self._box(self._lens.value)], shape_type="rectangle", name=BOXES,
             edge_color=LENS_COLOURS[self._lens.value], face_color="transparent",
-            edge_width=2, translate=translate,
+            edge_width=2, **place,
         )
         rays = self._viewer.add_points(
             self._ray_positions(), name=RAYS, features={"lens": np.arange(9)},
-            face_color=LENS_COLOURS, border_color="white", size=size, translate=translate,
+            face_color=LENS_COLOURS, border_color="white", size=size, **place,
             text={"string": "lens {lens}", "color": "white", "size": 10,
                   "anchor": "center", "translation": [-1.2 * size, 0]},
         )
@@ -370,13 +394,16 @@ class CalibrationWidget(Container):
             return None
         if str(self._positions.value) in ("", "."):
             notify_error("No positions file chosen.",
-                         "choose the CSV of the source positions (header row,col)")
+                         "choose the CSV of the source positions (header row,col or x_um,y_um)")
             return None
+        pixel_size = self._pixel_size.value or nominal.object_pixel_um  # 0: the system's
         try:
-            positions = read_positions(self._positions.value)
+            positions = read_positions(self._positions.value, pixel_size,
+                                       size=nominal.sub_view_size)
         except (CalibrationError, FileNotFoundError, UnicodeDecodeError) as err:
-            notify_error(err, "fix the positions file: a header line row,col, then one "
-                              "whole-pixel row,col line per frame")
+            notify_error(err, "fix the positions file: a header line row,col (object pixels, "
+                              "fractions allowed) or x_um,y_um (micrometres; set the pixel "
+                              "size), then one line per frame")
             return None
         try:
             dark = self._dark.read()
@@ -533,7 +560,8 @@ class CalibrationWidget(Container):
             return run["layer"]
         return self._viewer.add_image(run["frames"], name=f"{run['name']} (scan)",
                                       colormap="gray",
-                                      metadata=layer_metadata(run["nominal"], "scan"))
+                                      metadata=layer_metadata(run["nominal"], "scan"),
+                                      **placement(run["nominal"], 3))
 
     def _draw_spots(self, *_: Any) -> None:
         """Show the measured and predicted spot centroids of the chosen scan frame."""
@@ -556,7 +584,7 @@ class CalibrationWidget(Container):
             features={"kind": kinds, "lens": lenses},
             symbol=[SPOT_STYLE[kind][0] for kind in kinds],
             face_color=[SPOT_STYLE[kind][1] for kind in kinds], border_width=0,
-            size=size, translate=tuple(self._raw.translate[-2:]),
+            size=size, **placement_over(self._raw),
         )
         if self._raw.ndim == 3 and self._raw.data.shape[0] == len(self.calibration.centroids):
             self._viewer.dims.set_point(0, float(self._raw.translate[0]
@@ -565,16 +593,39 @@ class CalibrationWidget(Container):
 
     def show_psf_grid(self) -> napari.layers.Image | None:
         """Add (or refresh) the calibrated PSF grid as the layer ``"calibrated PSFs"``:
-        one ``G·k`` square per lens, row by row, shown with gamma 0.5 (faint tails)."""
+        one ``G·k`` square per lens, row by row, shown with gamma 0.5 (faint tails), in
+        object-space µm when the system knows its pixel size; over it the layer
+        ``"PSF FWHM"``, one cell per PSF centred on it: its FWHM in µm (else pixels)."""
         if self.calibration is None:
             notify_error("No calibration yet.", "press 'Calibrate' first")
             return None
-        grid = psf_montage(self.calibration.psfs)
+        system, psfs = self.calibration.system, self.calibration.psfs
+        grid = psf_montage(psfs)
+        fwhm = psf_montage(psf_fwhm(psfs)[..., None, None])  # (3G, 3G)
+        pixel = system.object_pixel_um
+        if pixel is not None:
+            fwhm = fwhm * pixel
+        place = placement(system)
+        k = psfs.shape[-1]
+        cells = {  # each cell spans the k × k pixels of its PSF
+            "scale": tuple(k * value for value in place["scale"]),
+            "translate": tuple((k - 1) / 2 * value for value in place["scale"]),
+            **({"units": place["units"]} if "units" in place else {}),
+        }
+        low, high = float(np.nanmin(fwhm)), float(np.nanmax(fwhm))
         layers = self._viewer.layers
-        if PSF_GRID in layers:
-            layers[PSF_GRID].data = grid
-            return layers[PSF_GRID]
-        layer = self._viewer.add_image(grid, name=PSF_GRID, colormap="magma", gamma=0.5)
+        for name in (PSF_GRID, FWHM_MAP):
+            if name in layers:
+                layers.remove(name)
+        layer = self._viewer.add_image(grid, name=PSF_GRID, colormap="magma", gamma=0.5,
+                                       **place)  # fmt: skip
+        self._viewer.add_image(
+            np.nan_to_num(fwhm, nan=low), name=FWHM_MAP, colormap="viridis", opacity=0.4,
+            blending="additive", contrast_limits=(low, high if high > low else low + 1e-6),
+            metadata={"unit": "µm" if pixel is not None else "pixel"}, **cells,
+        )
+        if in_micrometres(place):
+            show_scale_bar(self._viewer)
         if RAYS in layers:
             layers.selection.active = layers[RAYS]
         return layer

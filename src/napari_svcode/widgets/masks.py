@@ -12,7 +12,7 @@ from napari.utils.notifications import show_info
 
 from svcode_core.config import SystemConfig
 
-from .._layers import layer_metadata, notify_error, object_translate
+from .._layers import layer_metadata, notify_error, object_translate, placement
 from .._resources import cached_model
 from .._workers import function_worker
 from ._choosers import ModelChooser
@@ -180,5 +180,6 @@ class MaskWidget(Container):
         self._viewer.add_image(  # contrast from the mask's own range, e.g. 0.48–0.68
             mask, name=name, colormap="viridis",
             contrast_limits=(low, high if high > low else low + 1e-6),
-            translate=object_translate(system), metadata=layer_metadata(system, "mask"),
+            **placement(system, 2, object_translate(system)),
+            metadata=layer_metadata(system, "mask"),
         )

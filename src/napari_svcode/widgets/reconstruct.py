@@ -41,10 +41,14 @@ from svcode_core.methods.frames import frame_warnings
 
 from .._errors import LOG, notify_error, notify_warning
 from .._layers import (
+    LAYER_UNITS,
     current_index,
+    in_micrometres,
     layer_metadata,
     layer_system,
     object_translate,
+    placement_over,
+    show_scale_bar,
 )
 from .._resources import available_devices, cached_model
 from .._workers import Failed, yielding_failure
@@ -353,7 +357,7 @@ class ReconstructWidget(Container):
         lead = (float(layer.translate[0]),) if count > 1 else ()
         self._state = dict(
             system=system, jobs=jobs, count=count, first=first, truth=truth,
-            lead=lead, translate=object_translate(system),
+            lead=lead, translate=object_translate(system), raw=layer,
             shapes=((count, size, size), (9, count, size, size) if views else None),
             done=[], started=time.perf_counter(),
         )
@@ -447,31 +451,37 @@ class ReconstructWidget(Container):
         low, high = min(done), max(done) + 1  # frame_order keeps the done frames contiguous
         single = state["count"] == 1
         lead = tuple(value + low for value in state["lead"])
+        raw, origin = state["raw"], state["translate"]
         meta = layer_metadata(state["system"], RECONSTRUCTION, job.description)
         data = state["recon"][0] if single else state["recon"][low:high]
-        self._put_layer(job.layer_name, data, (*lead, *state["translate"]), meta,
+        self._put_layer(job.layer_name, data, placement_over(raw, data.ndim, origin, lead), meta,
                         ("frame",) if not single else (), colormap="magma")
         if state["views"] is not None:
             views = state["views"][:, 0] if single else state["views"][:, low:high]
             meta = layer_metadata(state["system"], "demixed", job.description)
-            self._put_layer(DEMIXED, views, (0.0, *lead, *state["translate"]), meta,
-                            ("lens",) + (("frame",) if not single else ()),
+            self._put_layer(DEMIXED, views, placement_over(raw, views.ndim, origin, (0.0, *lead)),
+                            meta, ("lens",) + (("frame",) if not single else ()),
                             colormap="gray", visible=False)
 
-    def _put_layer(self, name: str, data: np.ndarray, translate: tuple, meta: dict,
+    def _put_layer(self, name: str, data: np.ndarray, place: dict[str, Any], meta: dict,
                    leading: tuple[str, ...], **kwargs: Any) -> None:
+        """Add or update the layer ``name``, placed by ``place`` (scale, translate, units:
+        over the raw layer, :func:`~napari_svcode._layers.placement_over`)."""
         layers = self._viewer.layers
         labels = (*leading, "y", "x")
         if name in layers and layers[name].ndim == data.ndim:
             layer = layers[name]
             layer.data = data
-            layer.translate = translate
+            layer.scale, layer.translate = place["scale"], place["translate"]
+            if LAYER_UNITS:
+                layer.units = place.get("units") or ("pixel",) * data.ndim
             layer.metadata = meta
         else:
             if name in layers:
                 layers.remove(name)
-            layer = self._viewer.add_image(data, name=name, translate=translate,
-                                           metadata=meta, **kwargs)
+            layer = self._viewer.add_image(data, name=name, metadata=meta, **place, **kwargs)
+            if in_micrometres(place):
+                show_scale_bar(self._viewer)
         layer.axis_labels = labels
         if self.frames_done == 1:
             layer.reset_contrast_limits()

@@ -15,7 +15,14 @@ from svcode_core.phantoms import from_image
 from svcode_core.physics.cm2 import simulation_cost
 from svcode_core.physics.simulate import Simulation
 
-from .._layers import current_index, layer_metadata, notify_error
+from .._layers import (
+    current_index,
+    in_micrometres,
+    layer_metadata,
+    notify_error,
+    placement,
+    show_scale_bar,
+)
 from .._resources import simulator
 from .._workers import function_worker
 from ._choosers import SystemChooser, image_layer_box
@@ -32,7 +39,8 @@ class SimulateWidget(Container):
     The displayed plane of the chosen layer is cropped to a square, resized to the
     ``S × S`` object grid and normalised (:func:`svcode_core.phantoms.from_image`), then
     imaged with the system's SV forward model and sensor noise in a worker thread. The
-    raw frame is added as ``"<layer> (simulated raw)"`` with the system in its metadata.
+    raw frame is added as ``"<layer> (simulated raw)"`` with the system in its metadata,
+    in object-space µm when the system knows its pixel size.
     A simulation estimated (:func:`svcode_core.physics.cm2.simulation_cost`) to need more than
     1 GiB or 10 s is announced with its estimate first; one needing more memory than the
     machine has available is refused.
@@ -99,8 +107,12 @@ class SimulateWidget(Container):
         return True
 
     def _add(self, name: str, scene: Simulation, system: SystemConfig) -> None:
+        place = placement(system)
         self._viewer.add_image(scene.measurement, name=f"{name} (simulated raw)",
-                               colormap="gray", metadata=layer_metadata(system, "measurement"))
+                               colormap="gray", metadata=layer_metadata(system, "measurement"),
+                               **place)  # fmt: skip
+        if in_micrometres(place):
+            show_scale_bar(self._viewer)
 
 
 def _available_memory() -> int | None:

@@ -6,17 +6,14 @@ import argparse
 import time
 from pathlib import Path
 
-import numpy as np
-
-from ..io import read_tiff
-from . import add_system_arguments, chosen_system
+from . import SUMMARIES, add_system_arguments, chosen_system
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Register ``svcode calibrate``."""
     parser = subparsers.add_parser(
         "calibrate",
-        help="calibrate a system from a point-source scan",
+        help=SUMMARIES["calibrate"],
         description=(
             "Fit the chief rays, the lens array's shift and rotation, the per-lens PSFs on "
             "the system's PSF grid, the vignetting and the low-rank order from a scan of a "
@@ -30,13 +27,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="the source position of each frame, in the scan's order: "
                         "header 'row,col' then object pixels (fractions allowed), or "
                         "header 'x_um,y_um' then stage micrometres from the field's centre "
-                        "(needs --pixel-size); the frames of a repeated position are "
+                        "(scaled by --pixel-size); the frames of a repeated position are "
                         "averaged")  # fmt: skip
     parser.add_argument("--pixel-size", type=float, metavar="UM",
                         help="object-space pixel size in micrometres (sensor pixel over "
-                        "magnification), for positions in micrometres")  # fmt: skip
-    add_system_arguments(parser, default=None,
-                         preset_help="nominal system preset (sensor, grid, starting values)")
+                        "magnification), for positions in micrometres (default: the "
+                        "system's object_pixel_um)")  # fmt: skip
+    add_system_arguments(parser, default=None, what="the nominal system (sensor, grid, "
+                         "starting values)", default_text="required")  # fmt: skip
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument("--dark", type=Path, metavar="DARK.tif",
                         help="dark frame or stack (averaged) to subtract; default: each "
@@ -53,16 +51,20 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     """Calibrate and write the files; print a summary."""
     # scipy.stats and scikit-image's feature module: only when calibrating
+    import numpy as np
+
+    from ..io import read_tiff
     from ..physics.calibration import calibrate, read_positions, save_calibration
 
     nominal = chosen_system(args)
     if nominal is None:
-        raise ValueError("give the nominal system: --preset NAME or --system FILE.json")
+        raise ValueError("give the nominal system: --system NAME or FILE.json")
     frames, _, _ = read_tiff(args.scan)
     frames = np.asarray(frames)
     if frames.ndim == 2:
         frames = frames[None]
-    positions = read_positions(args.positions, args.pixel_size, size=nominal.sub_view_size,
+    pixel_size = nominal.object_pixel_um if args.pixel_size is None else args.pixel_size
+    positions = read_positions(args.positions, pixel_size, size=nominal.sub_view_size,
                                frames=len(frames))  # fmt: skip
     dark = None if args.dark is None else np.asarray(read_tiff(args.dark)[0])
     start = time.perf_counter()

@@ -23,7 +23,7 @@ import torch
 from safetensors.torch import load_file, save_file
 from torch import nn
 
-from ..config import SystemConfig
+from ..config import PIXEL_SIZE_FIELDS, SystemConfig
 from ..network.config import ModelConfig
 from ..network.models import DemixNet, ReconNet, SVCoDe
 from .base import resolve_device
@@ -133,8 +133,9 @@ PLACEMENT_FIELDS = ("chief_rays",)
 #: The forward model's description (measured PSFs, their rank): what the model-based
 #: methods invert, never an input of a network, so a calibrated system keeps its model.
 FORWARD_MODEL_FIELDS = ("psf_model", "rank", "rank_tolerance")
-#: Every system field a model may differ in from the system it runs on.
-FREE_FIELDS = PLACEMENT_FIELDS + FORWARD_MODEL_FIELDS
+#: Every system field a model may differ in from the system it runs on (the pixel sizes
+#: label the data and change no computation).
+FREE_FIELDS = PLACEMENT_FIELDS + FORWARD_MODEL_FIELDS + PIXEL_SIZE_FIELDS
 
 
 def load_model(

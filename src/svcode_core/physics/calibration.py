@@ -50,7 +50,7 @@ from skimage.feature import peak_local_max
 
 from ..config import N_LENSES, SystemConfig
 from .lowrank import decompose_psfs
-from .optics import system_psfs
+from .optics import psf_grid_positions, system_psfs
 
 __all__ = [
     "Calibration",
@@ -58,6 +58,7 @@ __all__ = [
     "Progress",
     "calibrate",
     "fit_array",
+    "psf_fwhm",
     "read_positions",
     "report_text",
     "save_calibration",
@@ -672,8 +673,79 @@ def _silent(stage: str, fraction: float) -> None:
 
 
 # ------------------------------------------------------------------ output
+#: Finer sampling (per pixel and axis) on which :func:`psf_fwhm` measures the half-maximum area.
+FWHM_UPSAMPLE = 4
+
+
+def psf_fwhm(psfs: np.ndarray) -> np.ndarray:
+    """Full width at half maximum of each PSF ``(..., k, k)``, in pixels.
+
+    The diameter of the disc whose area is that of the region at or above half the peak
+    that holds the peak (read on a :data:`FWHM_UPSAMPLE` times finer grid, cubic spline), so
+    an aberrated, elongated PSF gets one width; NaN for a PSF without a positive peak.
+
+    Examples
+    --------
+    >>> r = np.hypot(*np.mgrid[-8:9, -8:9])
+    >>> gaussian = np.exp(-(r / 3.0) ** 2 * 4 * np.log(2))  # FWHM 3 px
+    >>> round(float(psf_fwhm(gaussian)), 1)
+    3.0
+    """
+    psfs = np.asarray(psfs, dtype=np.float64)
+    flat = psfs.reshape(-1, *psfs.shape[-2:])
+    out = np.full(len(flat), np.nan)
+    up = FWHM_UPSAMPLE
+    for index, psf in enumerate(flat):
+        peak = psf.max()
+        if not peak > 0:
+            continue
+        labels, _ = ndimage.label(psf >= peak / 2)
+        top = np.unravel_index(np.argmax(psf), psf.shape)
+        rows, cols = np.nonzero(labels == labels[top])
+        # fine samples at the centres of 1/up-pixel cells over the core, one pixel around
+        r = np.arange((rows.min() - 1) * up, (rows.max() + 2) * up) / up + (0.5 / up - 0.5)
+        c = np.arange((cols.min() - 1) * up, (cols.max() + 2) * up) / up + (0.5 / up - 0.5)
+        grid = np.meshgrid(r, c, indexing="ij")
+        fine = ndimage.map_coordinates(psf, grid, order=3, mode="constant")
+        labels, _ = ndimage.label(fine >= peak / 2)
+        centre = np.unravel_index(np.argmax(fine), fine.shape)
+        area = np.count_nonzero(labels == labels[centre]) / up**2
+        out[index] = 2.0 * math.sqrt(area / math.pi)
+    return out.reshape(psfs.shape[:-2])
+
+
+def _fwhm_lines(calibration: Calibration) -> list[str]:
+    """The FWHM of the fitted PSFs at each field point of the PSF grid, over the lenses,
+    in pixels and (when the system knows its pixel size) object-space micrometres."""
+    system = calibration.system
+    fwhm = psf_fwhm(calibration.psfs)  # (9, G·G)
+    pixel = system.object_pixel_um
+    half = (system.sub_view_size - 1) / 2  # normalised field 1 is this many pixels out
+    lines = [
+        "PSF FWHM by field point, over the nine lenses "
+        + (f"(object pixel {pixel:g} um)" if pixel is not None
+           else "(pixel size unknown: give the system object_pixel_um for micrometres)"),
+        "field (v, u)     from centre (y, x) um    FWHM px median [min-max]    "
+        "FWHM um median [min-max]",
+    ]
+    for node, (v, u) in enumerate(psf_grid_positions(system)):
+        values = fwhm[:, node][np.isfinite(fwhm[:, node])]
+        if not len(values):
+            continue
+        stats = (np.median(values), values.min(), values.max())
+        pixels = "{:6.2f} [{:.2f}-{:.2f}]".format(*stats)
+        if pixel is None:
+            where, microns = "-", "-"
+        else:
+            where = f"({v * half * pixel:+9.1f}, {u * half * pixel:+9.1f})"
+            microns = "{:7.2f} [{:.2f}-{:.2f}]".format(*(value * pixel for value in stats))
+        lines.append(f"({v:+.2f}, {u:+.2f})   {where:>22}    {pixels:>24}    {microns:>24}")
+    return lines
+
+
 def report_text(calibration: Calibration, nominal: SystemConfig) -> str:
-    """A plain-text report of a calibration: chief rays, array motion, residuals, PSFs."""
+    """A plain-text report of a calibration: chief rays, array motion, residuals, PSFs
+    (their FWHM at each field point in pixels and micrometres)."""
     cal = calibration
     lines = [
         f"calibration of {nominal.name!r}: {len(cal.centroids)} frames, noise sigma "
@@ -696,6 +768,7 @@ def report_text(calibration: Calibration, nominal: SystemConfig) -> str:
             f"{cal.throughput[lens].max():.3f}")
     lines.append(f"low-rank order K = {max(cal.ranks)} at tolerance "
                  f"{cal.system.rank_tolerance:g} (per lens {list(cal.ranks)})")
+    lines += ["", *_fwhm_lines(cal)]
     return "\n".join(lines) + "\n"
 
 
@@ -705,7 +778,8 @@ def save_calibration(calibration: Calibration, out_dir: str | Path, nominal: Sys
 
     Files: ``system.json`` (``psf_model`` = ``psfs.tif``, relative), ``psfs.tif`` and
     ``psfs.positions.json`` (:func:`svcode_core.physics.psf_io.save_psfs`), ``calibration.json``
-    (fitted chief rays, offsets, array motion, throughput, ranks), ``report.txt`` and
+    (fitted chief rays, offsets, array motion, throughput, ranks, the PSF FWHM ``(9, G·G)``
+    in pixels and micrometres), ``report.txt`` and
     ``report.png`` (:func:`svcode_core.evaluation.figures.calibration_figure`; needs ``frames``).
 
     Returns
@@ -720,6 +794,7 @@ def save_calibration(calibration: Calibration, out_dir: str | Path, nominal: Sys
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     cal = calibration
+    fwhm, pixel = psf_fwhm(cal.psfs), cal.system.object_pixel_um
     psf_file, positions_file = save_psfs(out / "psfs.tif", cal.psfs, cal.system)
     system = cal.system.replace(psf_model=str(psf_file.resolve()))
     files = {"system": system.save(out / "system.json"), "psfs": psf_file,
@@ -737,6 +812,9 @@ def save_calibration(calibration: Calibration, out_dir: str | Path, nominal: Sys
         "ranks": list(cal.ranks),
         "brightness": cal.brightness,
         "noise_sigma": cal.noise_sigma,
+        "object_pixel_um": cal.system.object_pixel_um,
+        "psf_fwhm_px": _json_list(fwhm),
+        "psf_fwhm_um": None if pixel is None else _json_list(fwhm * pixel),
     })
     text = report_text(cal, nominal)
     files["report"] = out / "report.txt"
@@ -744,3 +822,8 @@ def save_calibration(calibration: Calibration, out_dir: str | Path, nominal: Sys
     if frames is not None:
         files["figure"] = calibration_figure(out / "report.png", cal, np.asarray(frames))
     return files
+
+
+def _json_list(values: np.ndarray) -> list:
+    """``values`` as nested lists, NaN as ``null`` (JSON has no NaN)."""
+    return np.where(np.isfinite(values), np.round(values, 4), None).tolist()

@@ -49,7 +49,7 @@ import tifffile
 from tqdm import tqdm
 
 from ..config import N_LENSES, SystemConfig
-from ..io import METADATA_KEY, tiff_metadata, write_json_atomic
+from ..io import METADATA_KEY, resolution_tags, tiff_metadata, write_json_atomic
 from ..methods.base import check_frame_shape
 from ..methods.frames import finite_frame, require_frames
 from ..outputs import NoSpaceError, OutputLock, check_outputs, no_space, preallocate, require_space
@@ -218,6 +218,7 @@ class _ResumableOutput:
             "views": (*lead, N_LENSES, self.size, self.size),
         }
         self.meta = {"system": system.to_dict(), **settings}
+        self.resolution = resolution_tags(system.object_pixel_um)  # a scale bar in µm
         self.fingerprint = fingerprint
         self.arrays: dict[str, np.ndarray] = {}
         self.resumed = self._reopen()
@@ -283,6 +284,7 @@ class _ResumableOutput:
                 dtype=np.float32,
                 photometric="minisblack",
                 metadata={METADATA_KEY: {"kind": kind, **self.meta}},
+                **self.resolution,
             )
             try:
                 preallocate(target)
