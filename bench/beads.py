@@ -24,14 +24,11 @@ import time
 from pathlib import Path
 
 import numpy as np
-from probes import write_report
+from probes import ADMM_AUTO, admm_auto, realistic_simulator, write_report
 
 from svcode_core.config import SystemConfig
 from svcode_core.evaluation.beads import BEAD_SIGMA, BeadScore, bead_phantom, score_beads
-from svcode_core.evaluation.bench import ADMM_RANK, REGIMES
 from svcode_core.methods.build import build_reconstructor
-from svcode_core.physics.departures import Departures
-from svcode_core.physics.simulate import Simulator
 
 RESULTS = Path(__file__).parent / "results"
 #: beads per 100 × 100 object pixels
@@ -42,8 +39,7 @@ TRUTH = "truth (the phantom)"
 def methods(system: SystemConfig, admm: bool) -> dict:
     found = {"SV-CoDe (bundled)": build_reconstructor("svcode", system)}
     if admm:
-        found[f"LSV-ADMM K={ADMM_RANK}, 50 it, λ auto"] = build_reconstructor(
-            "admm", system, rank=ADMM_RANK, iterations=50, tolerance=0.0, tv_weight="auto")
+        found[ADMM_AUTO] = admm_auto(system)
     found["Wiener"] = build_reconstructor("wiener", system)
     return found
 
@@ -56,7 +52,7 @@ def main() -> None:
                         help="output stem (.json and .md; default bench/results/beads)")
     args = parser.parse_args()
     system = SystemConfig.preset("cm2-mini")
-    simulator = Simulator(system, departures=Departures.named(REGIMES["realistic"], system))
+    simulator = realistic_simulator(system)
     reconstructors = methods(system, not args.no_admm)
     labels = [TRUTH, *reconstructors]
     scores = {label: {d: [] for d in DENSITIES} for label in labels}

@@ -23,14 +23,12 @@ import time
 from pathlib import Path
 
 import numpy as np
-from probes import write_report
+from probes import ADMM_AUTO, admm_auto, realistic_simulator, write_report
 
 from svcode_core.config import SystemConfig
-from svcode_core.evaluation.bench import ADMM_RANK, REGIMES, SCENES, scene_object
+from svcode_core.evaluation.bench import SCENES, scene_object
 from svcode_core.evaluation.metrics import psnr
 from svcode_core.methods.build import build_reconstructor
-from svcode_core.physics.departures import Departures
-from svcode_core.physics.simulate import Simulator
 
 RESULTS = Path(__file__).parent / "results"
 SCALES = (1.0, 0.2, 0.05, 0.02)
@@ -45,8 +43,7 @@ def methods(system: SystemConfig, admm: bool) -> dict:
                                                            normalise_exposure=False),
     }
     if admm:
-        found[f"LSV-ADMM K={ADMM_RANK}, 50 it, λ auto"] = build_reconstructor(
-            "admm", system, rank=ADMM_RANK, iterations=50, tolerance=0.0, tv_weight="auto")
+        found[ADMM_AUTO] = admm_auto(system)
     return found
 
 
@@ -57,8 +54,8 @@ def main() -> None:
                         help="output stem (.json and .md; default bench/results/exposure)")
     args = parser.parse_args()
     system = SystemConfig.preset("cm2-mini")
-    realistic = Departures.named(REGIMES["realistic"], system)
-    simulator = Simulator(system, departures=realistic)
+    simulator = realistic_simulator(system)
+    realistic = simulator.departures
     truths = {name: scene_object(kind, system.sub_view_size, index, params)
               for index, (name, kind, params) in enumerate(SCENES)}
     recorded = {fraction: {} for fraction in PHOTON_FRACTIONS}

@@ -12,8 +12,11 @@ import numpy as np
 import torch
 
 from svcode_core.config import SystemConfig
-from svcode_core.evaluation.bench import ADMM_RANK, model_label
+from svcode_core.evaluation.bench import ADMM_RANK, REGIMES, model_label
+from svcode_core.methods.base import BaseReconstructor
 from svcode_core.methods.build import build_reconstructor
+from svcode_core.physics.departures import Departures
+from svcode_core.physics.simulate import Simulator
 from svcode_core.pretrained import require_bundled_weights
 
 #: raw frame ``(H, W)`` to the ``(S, S)`` object estimate
@@ -50,6 +53,21 @@ def admm_method(system: SystemConfig, iterations: int) -> tuple[str, Reconstruct
                                tolerance=0.0)
     return (f"LSV-ADMM K={ADMM_RANK}, {iterations} it",
             lambda raw: admm.reconstruct(raw).reconstruction)
+
+
+#: LSV-ADMM as the regime probes run it: its defaults, every iteration run
+ADMM_AUTO = f"LSV-ADMM K={ADMM_RANK}, 50 it, λ auto"
+
+
+def admm_auto(system: SystemConfig) -> BaseReconstructor:
+    """LSV-ADMM at ``K`` = 3, 50 iterations, λ from each frame, no early stop."""
+    return build_reconstructor("admm", system, rank=ADMM_RANK, iterations=50, tolerance=0.0,
+                               tv_weight="auto")
+
+
+def realistic_simulator(system: SystemConfig) -> Simulator:
+    """The realistic regime's departed instrument (the methods are given ``system``)."""
+    return Simulator(system, departures=Departures.named(REGIMES["realistic"], system))
 
 
 def write_report(rows: list[dict], out: Path,

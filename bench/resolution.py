@@ -17,10 +17,9 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-from probes import write_report
+from probes import ADMM_AUTO, admm_auto, realistic_simulator, write_report
 
 from svcode_core.config import SystemConfig
-from svcode_core.evaluation.bench import ADMM_RANK, REGIMES
 from svcode_core.evaluation.resolution import (
     PERIODS,
     POSITIONS,
@@ -30,8 +29,6 @@ from svcode_core.evaluation.resolution import (
     finest_resolved,
 )
 from svcode_core.methods.build import build_reconstructor
-from svcode_core.physics.departures import Departures
-from svcode_core.physics.simulate import Simulator
 
 RESULTS = Path(__file__).parent / "results"
 
@@ -45,13 +42,12 @@ def main() -> None:
                         help="output stem (.json and .md; default bench/results/resolution)")
     args = parser.parse_args()
     system = SystemConfig.preset("cm2-mini")
-    simulator = Simulator(system, departures=Departures.named(REGIMES["realistic"], system))
+    simulator = realistic_simulator(system)
     methods = {"SV-CoDe (bundled)": build_reconstructor("svcode", system)}
     for path in args.weights:
         methods[f"SV-CoDe: {path}"] = build_reconstructor("svcode", system, path)
     if not args.no_admm:
-        methods[f"LSV-ADMM K={ADMM_RANK}, 50 it, λ auto"] = build_reconstructor(
-            "admm", system, rank=ADMM_RANK, iterations=50, tolerance=0.0, tv_weight="auto")
+        methods[ADMM_AUTO] = admm_auto(system)
     dips: dict[str, dict[str, dict[float, float]]] = {
         label: {name: {} for name in POSITIONS} for label in ["truth", *methods]}
     for index, period in enumerate(PERIODS):
