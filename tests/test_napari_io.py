@@ -147,3 +147,21 @@ def test_writer_takes_the_pixel_size_from_a_layer_in_micrometres(tmp_path, make_
     layer.save(str(tmp_path / "plain.tif"), plugin=PLUGIN)
     _, system, meta = read_tiff(tmp_path / "plain.tif")
     assert system is None and meta["pixel_size_um"] == 2.5
+
+
+def test_sample_truth_and_frame_share_a_scene_and_the_writer_keeps_the_frames(
+        tmp_path, tiny_system, make_napari_viewer):
+    (truth, truth_kwargs, _), (_, raw_kwargs, _) = sample_layers("beads", tiny_system)
+    scene = raw_kwargs["metadata"]["svcode_scene"]
+    assert scene and truth_kwargs["metadata"]["svcode_scene"] == scene
+    assert sample_layers("cells", tiny_system)[1][1]["metadata"]["svcode_scene"] != scene
+
+    viewer = make_napari_viewer()
+    size = tiny_system.sub_view_size
+    frames = {"first": 3, "stop": 5, "total": 8}  # a cancelled run kept frames 3 and 4
+    layer = viewer.add_image(np.zeros((2, size, size), np.float32), name="reconstruction",
+                             metadata={SYSTEM_KEY: tiny_system, KIND_KEY: "reconstruction",
+                                       "svcode_frames": frames})
+    path = tmp_path / "partial.tif"
+    layer.save(str(path), plugin=PLUGIN)
+    assert read_tiff(path)[2]["frames"] == frames

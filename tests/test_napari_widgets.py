@@ -670,23 +670,27 @@ def test_cells_sample_reconstructs_with_lsv_admm(qtbot, make_napari_viewer):
 
 
 def test_compare_two_methods_side_by_side(qtbot, tiny_system, model_file, make_napari_viewer):
+    """Each panel is named by its method and knobs (and shows it in its grid cell), both
+    share one contrast range, and both are scored against the frame's own truth."""
     viewer = make_napari_viewer()
     stack = _raw_stack(tiny_system, 2)
-    viewer.add_image(stack, name="raw", metadata=layer_metadata(tiny_system, "measurement"))
+    viewer.add_image(stack, name="raw",
+                     metadata=layer_metadata(tiny_system, "measurement", scene="s1"))
     size = tiny_system.sub_view_size
     viewer.add_image(np.random.default_rng(1).random((size, size)), name="truth",
                      translate=object_translate(tiny_system),
-                     metadata=layer_metadata(tiny_system, "object"))
+                     metadata=layer_metadata(tiny_system, "object", scene="s1"))
     viewer.dims.set_current_step(0, 1)
     widget = _dock(viewer, ReconstructWidget)
     assert widget._layer.value.name == "raw" and widget._truth.value.name == "truth"
     _use_model(widget, model_file)
     widget._compare.value = True
     widget._second.method.value = "wiener"
+    widget._second.balance.value = 0.05
     assert widget.start() is not None
     _wait_done(qtbot, widget)
-    first = viewer.layers["reconstruction A (svcode)"]
-    second = viewer.layers["reconstruction B (wiener)"]
+    first = viewer.layers["A: SV-CoDe (network)"]
+    second = viewer.layers["B: Wiener (per view, fused), balance 0.05, reflect boundary"]
     assert first.data.shape == second.data.shape == (size, size)  # the current frame only
     expected = widget_reconstructor(model_file, tiny_system).reconstruct(stack[1])
     np.testing.assert_allclose(first.data, expected.reconstruction, atol=1e-6)
@@ -694,7 +698,53 @@ def test_compare_two_methods_side_by_side(qtbot, tiny_system, model_file, make_n
     assert all({"psnr", "ssim", "psnr_centre", "psnr_ring", "seconds"} <= set(entry)
                for entry in widget.results)
     assert second.metadata["svcode_quality"]["method"] == "wiener"
+    assert "balance 0.05" in widget._results.value
     assert viewer.canvas.grid.enabled and not viewer.layers["raw"].visible
+    assert first.name_overlay.visible and second.name_overlay.visible
+    low = min(first.data.min(), second.data.min())
+    high = max(first.data.max(), second.data.max())
+    np.testing.assert_allclose(first.contrast_limits, (low, high), rtol=1e-5)
+    np.testing.assert_allclose(second.contrast_limits, (low, high), rtol=1e-5)
+    first.contrast_limits = (low, (low + high) / 2)  # changing one changes the other
+    np.testing.assert_allclose(second.contrast_limits, (low, (low + high) / 2), rtol=1e-5)
+    assert widget._status.value.startswith("Done")
+
+    widget._second.balance.value = 0.1  # new knobs: the old panel B makes way
+    assert widget.start() is not None
+    _wait_done(qtbot, widget)
+    assert second.name not in viewer.layers
+    assert sum(name.startswith("B: ") for name in map(str, viewer.layers)) == 1
+
+
+def test_compare_scores_only_against_the_truth_of_its_own_scene(
+        qtbot, tiny_system, model_file, make_napari_viewer):
+    """An all-zero frame of no scene is not scored against another scene's truth: the
+    chooser leaves the truth empty, and a truth forced onto it is refused in the status."""
+    viewer = make_napari_viewer()
+    size = tiny_system.sub_view_size
+    viewer.add_image(np.random.default_rng(1).random((size, size)), name="cells truth",
+                     translate=object_translate(tiny_system),
+                     metadata=layer_metadata(tiny_system, "object", scene="cells"))
+    viewer.add_image(_raw_stack(tiny_system, 1)[0], name="cells raw",
+                     metadata=layer_metadata(tiny_system, "measurement", scene="cells"))
+    widget = _dock(viewer, ReconstructWidget)
+    _use_model(widget, model_file)
+    assert widget._truth.value.name == "cells truth"
+    zeros = viewer.add_image(np.zeros(tiny_system.sensor_shape, np.float32), name="zeros",
+                             metadata=layer_metadata(tiny_system, "measurement"))
+    widget._layer.value = zeros
+    assert widget._truth.value is None  # another scene's truth does not stay selected
+    widget._compare.value = True
+    widget._second.method.value = "wiener"
+    widget._truth.value = viewer.layers["cells truth"]  # forced: refused, not scored
+    assert widget.start() is not None
+    _wait_done(qtbot, widget)
+    assert len(widget.results) == 2 and not any("psnr" in entry for entry in widget.results)
+    assert "PSNR" not in widget._results.value
+    assert "Not scored" in widget._status.value and "another scene" in widget._status.value
+    assert not viewer.layers["cells truth"].visible  # not shown as the truth either
+    widget._layer.value = viewer.layers["cells raw"]  # back to the frame: its own truth
+    assert widget._truth.value.name == "cells truth"
 
 
 def test_costly_settings_ask_before_running(qtbot, make_napari_viewer, warnings):
@@ -744,8 +794,8 @@ def test_the_status_says_when_the_periphery_is_refined(qtbot, monkeypatch, tiny_
     assert widget._status.value.startswith("Done")
 
 
-def test_cancelled_stack_adds_only_the_frames_done(qtbot, monkeypatch, tiny_system, model_file,
-                                                   make_napari_viewer):
+def test_cancelled_stack_adds_only_the_frames_done(qtbot, monkeypatch, tmp_path, tiny_system,
+                                                   model_file, make_napari_viewer):
     model = _slow_model(monkeypatch, model_file, tiny_system, 0.0)  # a batch a frame
     viewer = make_napari_viewer()
     stack, widget = _stack_in_widget(viewer, tiny_system, model_file, 5, current=2)
@@ -765,6 +815,43 @@ def test_cancelled_stack_adds_only_the_frames_done(qtbot, monkeypatch, tiny_syst
     np.testing.assert_allclose(recon.data, expected.reconstruction, atol=1e-6)
     assert views.axis_labels[0] == "lens" and recon.axis_labels[0] == "frame"
     assert viewer.dims.axis_labels[0] == "lens"  # the slider is labelled, not "-3"
+    # the bar and the status show what was kept; the layers and the file say which frames
+    assert widget._progress.value == done * STEPS and widget._progress.max == 5 * STEPS
+    assert widget._status.value.startswith("Cancelled") and f"{done} of 5" in widget._status.value
+    frames = {"first": 2, "stop": 2 + done, "total": 5}
+    assert recon.metadata["svcode_frames"] == views.metadata["svcode_frames"] == frames
+    from svcode_core.io import read_tiff
+
+    path = tmp_path / "partial.tif"
+    recon.save(str(path), plugin="napari-svcode")
+    assert read_tiff(path)[2]["frames"] == frames
+
+
+def test_the_status_line_tells_how_the_last_run_ended(qtbot, monkeypatch, tiny_system,
+                                                       model_file, make_napari_viewer, errors):
+    model = _slow_model(monkeypatch, model_file, tiny_system, 0.0)
+    viewer = make_napari_viewer()
+    _, widget = _stack_in_widget(viewer, tiny_system, model_file, 1)
+    assert widget.start() is not None
+    _wait_done(qtbot, widget)
+    assert widget._status.value.startswith("Done in")
+
+    def fail(calls: int) -> None:
+        raise RuntimeError("CUDA out of memory (simulated)")
+
+    model.hook = fail  # an error in the worker: not "Done" from the run before
+    assert widget.start() is not None
+    _wait_done(qtbot, widget)
+    assert widget._status.value.startswith("Failed after")
+    assert "CUDA out of memory (simulated)" in widget._status.value
+    assert widget._progress.value == 0
+
+    model.hook = None
+    meta = layer_metadata(tiny_system, "measurement")
+    widget._layer.value = viewer.add_image(np.zeros((50, 50), np.float32), name="wrong",
+                                           metadata=meta)
+    assert widget.start() is None  # refused before running: said so, not the last run's
+    assert widget._status.value.startswith("Not run:") and "60×80" in widget._status.value
 
 
 def test_progress_shows_in_the_widget_within_a_second_without_event_processing(
@@ -972,6 +1059,47 @@ def test_simulate_widget_makes_a_raw_frame(qtbot, tmp_path, tiny_system, make_na
     assert tuple(layer.scale) == (10, 10) and str(layer.units[-1]) == "micrometer"
 
 
+def test_simulate_brightness_saturation_truth_and_the_reconstruct_choosers(
+        qtbot, tmp_path, tiny_system, make_napari_viewer, warnings):
+    """A bright object warns that the frame saturates, a lower peak does not; the truth
+    comes as a layer of the raw frame's scene, and the Reconstruct widget moves from a
+    plain 512×512 image to the raw frame that fits its system and scores against it."""
+    viewer = make_napari_viewer()
+    viewer.add_image(np.random.default_rng(2).random((512, 512)), name="photo")
+    reconstruct = _dock(viewer, ReconstructWidget)
+    assert reconstruct._layer.value.name == "photo" and reconstruct._truth.value is None
+    widget = _dock(viewer, SimulateWidget)
+    widget._system_choice.source.value = widget._system_choice.FROM_FILE
+    widget._system_choice.path.value = tiny_system.save(tmp_path / "system.json")
+    assert widget._peak.value == 1.0
+    assert widget.start() is not None
+    qtbot.waitUntil(lambda: "photo (simulated raw)" in viewer.layers, timeout=20_000)
+    raw, truth = viewer.layers["photo (simulated raw)"], viewer.layers["photo (simulated truth)"]
+    assert len(warnings) == 1 and "% of the simulated frame's pixels are saturated" in warnings[0]
+    assert "lower the object peak" in warnings[0]
+    size = tiny_system.sub_view_size
+    assert truth.data.shape == (size, size) and not truth.visible
+    assert np.isclose(truth.data.max(), 1.0)
+    assert tuple(truth.translate) == tuple(10 * t for t in object_translate(tiny_system))
+    assert truth.metadata["svcode_scene"] == raw.metadata["svcode_scene"]
+    assert truth.metadata["svcode_kind"] == "object"
+    assert reconstruct._layer.value is raw and reconstruct._truth.value is truth
+
+    widget._peak.value = 0.3  # dimmer: no saturation, a truth of that peak, another scene
+    assert widget.start() is not None
+    qtbot.waitUntil(lambda: widget._run.enabled and len(viewer.layers) == 5, timeout=20_000)
+    assert len(warnings) == 1
+    dim = viewer.layers[-2]
+    assert np.isclose(dim.data.max(), 0.3)
+    assert dim.metadata["svcode_scene"] != truth.metadata["svcode_scene"]
+
+    reconstruct._panel.method.value = "wiener"  # scored against the frame's own truth
+    assert reconstruct.start() is not None
+    _wait_done(qtbot, reconstruct)
+    [entry] = reconstruct.results
+    assert "psnr" in entry and "PSNR" in reconstruct._results.value
+
+
 def test_simulate_widget_announces_or_refuses_a_large_simulation(
     qtbot, tmp_path, tiny_system, make_napari_viewer, monkeypatch
 ):
@@ -1053,8 +1181,8 @@ def test_screenshot_compare_view(qtbot, tmp_path, make_napari_viewer):
     _wait_done(qtbot, widget, 600_000)
     assert len(widget.results) == 2 and all("psnr" in entry for entry in widget.results)
     grid = [layer.name for layer in viewer.layers if layer.visible]
-    assert grid == ["vessels ground truth", "reconstruction A (svcode)",
-                    "reconstruction B (admm)"]
+    assert grid[0] == "vessels ground truth" and grid[1].startswith("A: SV-CoDe")
+    assert grid[2].startswith(f"B: LSV-ADMM (TV), {COMPARE_ADMM_ITERATIONS} iterations")
     _screenshot(qtbot, viewer, "napari-compare.png", tmp_path)
 
 

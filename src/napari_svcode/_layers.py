@@ -3,7 +3,11 @@
 Layer metadata keys
     ``SYSTEM_KEY``: the :class:`~svcode_core.config.SystemConfig` of the data;
     ``KIND_KEY``: what the data is (``"measurement"``, ``"reconstruction"``, ...);
-    ``MODEL_KEY``: a JSON-serialisable description of the model that made it.
+    ``MODEL_KEY``: a JSON-serialisable description of the model that made it;
+    ``SCENE_KEY``: an id of the simulated scene, shared by a raw frame and its ground truth
+    (sample data, Simulate), so a truth is only scored against its own frame;
+    ``FRAMES_KEY``: which frames of the raw stack a reconstruction holds
+    (``{"first", "stop", "total"}``: a cancelled stack keeps a contiguous range).
 
 Placement
     Raw frames are shown with the origin at the first sensor pixel. Data on the ``S × S``
@@ -36,8 +40,10 @@ from ._errors import notify_error
 
 __all__ = [
     "CENTRAL_LENS",
+    "FRAMES_KEY",
     "KIND_KEY",
     "MODEL_KEY",
+    "SCENE_KEY",
     "SYSTEM_KEY",
     "chief_rays_from_boxes",
     "current_index",
@@ -49,6 +55,7 @@ __all__ = [
     "place_layer",
     "placement",
     "placement_over",
+    "same_scene",
     "show_scale_bar",
     "sub_view_boxes",
 ]
@@ -56,6 +63,8 @@ __all__ = [
 SYSTEM_KEY = "svcode_system"
 KIND_KEY = "svcode_kind"
 MODEL_KEY = "svcode_model"
+SCENE_KEY = "svcode_scene"
+FRAMES_KEY = "svcode_frames"
 CENTRAL_LENS = 4
 MICROMETRE = "µm"
 #: whether napari layers take ``units`` (0.6 and later); before, world units are unnamed
@@ -70,12 +79,29 @@ def layer_system(metadata: Mapping[str, Any]) -> SystemConfig | None:
     return system
 
 
-def layer_metadata(system: SystemConfig | None, kind: str, model: dict | None = None) -> dict:
-    """Metadata dictionary for a layer holding data of ``kind`` made with ``system``."""
+def layer_metadata(system: SystemConfig | None, kind: str, model: dict | None = None,
+                   scene: str | None = None) -> dict:  # fmt: skip
+    """Metadata dictionary for a layer holding data of ``kind`` made with ``system``
+    (of the simulated ``scene``, if given)."""
     meta: dict[str, Any] = {SYSTEM_KEY: system, KIND_KEY: kind}
     if model is not None:
         meta[MODEL_KEY] = model
+    if scene is not None:
+        meta[SCENE_KEY] = scene
     return meta
+
+
+def same_scene(first: Mapping[str, Any], second: Mapping[str, Any]) -> bool:
+    """Whether two layers' metadata record the same simulated scene (never for layers
+    that record none, such as real recordings).
+
+    Examples
+    --------
+    >>> same_scene({SCENE_KEY: "cells"}, {SCENE_KEY: "cells"}), same_scene({}, {})
+    (True, False)
+    """
+    scene = first.get(SCENE_KEY)
+    return scene is not None and scene == second.get(SCENE_KEY)
 
 
 def object_translate(system: SystemConfig) -> tuple[float, float]:

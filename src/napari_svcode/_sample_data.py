@@ -47,24 +47,25 @@ def sample_layers(kind: str, system: SystemConfig | None = None) -> list[tuple]:
     -------
     list of napari layer-data tuples
         The ground truth on the object grid, placed over the raw frame, and the raw frame;
-        both record the system in their metadata and are in object-space µm (the
-        current viewer's scale bar is shown).
+        both record the system and one scene id (``svcode_scene``) in their metadata and
+        are in object-space µm (the current viewer's scale bar is shown).
     """
     if kind not in SAMPLE_KINDS:
         raise ValueError(f"unknown sample {kind!r}; choose one of {', '.join(SAMPLE_KINDS)}")
     system = system or SystemConfig.preset(SAMPLE_SYSTEM)
     scene = _simulate(kind, system)
+    scene_id = f"sample {kind} {system.name} seed {SAMPLE_SEED}"  # links truth and frame
     truth = {
         "name": f"{kind} ground truth",
         **placement(system, 2, object_translate(system)),
-        "metadata": layer_metadata(system, "object"),
+        "metadata": layer_metadata(system, "object", scene=scene_id),
         "colormap": "magma",
         "visible": False,
     }
     raw = {
         "name": f"{kind} raw",
         **placement(system, 2),
-        "metadata": layer_metadata(system, "measurement"),
+        "metadata": layer_metadata(system, "measurement", scene=scene_id),
         "colormap": "gray",
     }
     if in_micrometres(raw):

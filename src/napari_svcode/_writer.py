@@ -6,7 +6,7 @@ from typing import Any
 
 from svcode_core.io import write_tiff
 
-from ._layers import KIND_KEY, MICROMETRE, MODEL_KEY, layer_system
+from ._layers import FRAMES_KEY, KIND_KEY, MICROMETRE, MODEL_KEY, layer_system
 
 __all__ = ["write_image"]
 
@@ -15,8 +15,10 @@ def write_image(path: str, data: Any, attributes: dict) -> list[str]:
     """Write one image layer as a float32 TIFF readable by :func:`svcode_core.io.read_tiff`.
 
     The layer's system (``svcode_system``), kind (``svcode_kind``, default
-    ``"reconstruction"``) and model description (``svcode_model``) go into the file's
-    metadata, so the file can be reopened and traced to the model that made it. The
+    ``"reconstruction"``), model description (``svcode_model``) and, for a stack, the
+    raw frames it holds (``svcode_frames``: ``first``, ``stop``, ``total``; a cancelled
+    run keeps part of the stack) go into the file's metadata (keys ``model``, ``frames``),
+    so the file can be reopened and traced to the model and frames that made it. The
     pixel size (the system's, else the layer's scale when its units are µm) goes into the
     resolution tags (:func:`svcode_core.io.write_tiff`).
 
@@ -30,6 +32,8 @@ def write_image(path: str, data: Any, attributes: dict) -> list[str]:
     extra = {"layer": attributes.get("name", "")}
     if metadata.get(MODEL_KEY) is not None:
         extra["model"] = metadata[MODEL_KEY]
+    if metadata.get(FRAMES_KEY) is not None:
+        extra["frames"] = dict(metadata[FRAMES_KEY])
     kind = metadata.get(KIND_KEY) or "reconstruction"
     size = system.object_pixel_um if system is not None else None
     write_tiff(path, data, system, kind=kind, extra=extra,

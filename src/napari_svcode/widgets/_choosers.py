@@ -68,8 +68,11 @@ def image_layer_box(viewer: napari.viewer.Viewer, label: str,
     """A combo box of the viewer's image layers that follows the layer list.
 
     With ``fit`` (a score, 0 = does not fit), the box moves to the best-fitting layer
-    whenever its current choice does not fit (or is empty) and a fitting one appears.
-    ``nullable`` adds an empty choice (shown as ``-----``).
+    whenever its current choice does not fit (or is empty) and a fitting one appears, and
+    to a newly added layer that fits better than its current choice (a raw frame of the
+    system's shape over a plain image). ``nullable`` adds an empty choice (shown as
+    ``-----``), taken when nothing fits. ``box.refit()`` applies the rule again (for a
+    ``fit`` that depends on another choice).
     """
 
     def choices(_widget: Any) -> list[tuple[str, Image]]:
@@ -77,12 +80,17 @@ def image_layer_box(viewer: napari.viewer.Viewer, label: str,
 
     box = ComboBox(label=label, choices=choices, nullable=nullable, tooltip=tooltip)
 
-    def refit(*_: Any) -> None:
+    def refit(event: Any = None) -> None:
         box.reset_choices()
         if fit is None:
             return
         current = box.value
-        if current is not None and fit(current) > 0:
+        score = fit(current) if current is not None else 0
+        added = getattr(event, "type", None) == "inserted" and isinstance(event.value, Image)
+        if added and fit(event.value) > score:
+            box.value = event.value
+            return
+        if score > 0:
             return
         scored = [(fit(layer), index, layer) for index, layer in enumerate(viewer.layers)
                   if isinstance(layer, Image)]
@@ -94,6 +102,7 @@ def image_layer_box(viewer: napari.viewer.Viewer, label: str,
 
     for event in (viewer.layers.events.inserted, viewer.layers.events.removed):
         event.connect(refit)
+    box.refit = refit
     refit()
     return box
 

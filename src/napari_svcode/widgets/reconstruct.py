@@ -41,6 +41,7 @@ from svcode_core.methods.frames import frame_warnings
 
 from .._errors import LOG, notify_error, notify_warning
 from .._layers import (
+    FRAMES_KEY,
     LAYER_UNITS,
     current_index,
     in_micrometres,
@@ -48,6 +49,7 @@ from .._layers import (
     layer_system,
     object_translate,
     placement_over,
+    same_scene,
     show_scale_bar,
 )
 from .._resources import available_devices, cached_model
@@ -60,6 +62,12 @@ __all__ = ["Job", "ReconstructWidget", "frame_order", "reconstruct_frames", "run
 RECONSTRUCTION = "reconstruction"
 DEMIXED = "demixed views"
 QUALITY_KEY = "svcode_quality"
+#: which panel of a comparison (``"A"``, ``"B"``) a layer shows
+COMPARE_KEY = "svcode_compare"
+#: how the knobs of a method read in a layer name (``None``: not named)
+KNOBS = {"tile_size": "tile {}", "refine_periphery": "periphery ×{}", "rank": "K = {}",
+         "iterations": "{} iterations", "tv_weight": "λ {}", "balance": "balance {}",
+         "boundary": "{} boundary", "precision": "{}"}
 #: progress-bar steps per frame: the bar and its text change at most this often a frame
 #: (every Qt call from Python has a cost, so tile-by-tile updates are coalesced)
 STEPS = 100
@@ -79,6 +87,7 @@ class Job:
     build: Callable[[], Any]
     description: dict[str, Any] = field(default_factory=dict)
     layer_name: str = RECONSTRUCTION
+    slot: str | None = None  # "A" or "B" in a comparison
 
 
 @dataclass(frozen=True)
@@ -138,11 +147,15 @@ class ReconstructWidget(Container):
     methods) and adds ``"reconstruction"`` (``(S, S)`` or ``(T, S, S)``) and, if asked,
     ``"demixed views"`` (``(9, S, S)`` or ``(9, T, S, S)``, axis ``lens`` first), placed
     over the raw frame. A stack runs from the current frame to the end, then backwards,
-    and its layers hold only the frames done. *Compare* runs two methods on the current
-    frame and shows them side by side (grid view) with the seconds each took and, with a
-    ground-truth layer, PSNR / SSIM (centre and ring). Runs estimated to take very long or
-    not to fit in memory ask for a second press. *Copy CLI command* gives the equivalent
-    ``svcode reconstruct`` command for a folder of recordings.
+    and its layers hold only the frames done (``svcode_frames`` in their metadata says
+    which). *Compare* runs two methods on the current frame and shows them side by side
+    (grid view, one contrast range for both) as layers ``"A: <method>, <knobs>"`` and
+    ``"B: …"``, with the seconds each took and PSNR / SSIM (centre and ring) against the
+    ground truth of the raw frame's own simulated scene (``svcode_scene``), if there is
+    one; a truth of another scene is not used, and the status line says so. The status
+    line tells how the last run ended (done, cancelled, failed, not run). Runs estimated
+    to take very long or not to fit in memory ask for a second press. *Copy CLI command*
+    gives the equivalent ``svcode reconstruct`` command for a folder of recordings.
     """
 
     def __init__(self, napari_viewer: napari.viewer.Viewer) -> None:
@@ -152,9 +165,10 @@ class ReconstructWidget(Container):
         self._panel = MethodPanel("method")
         self._compare = CheckBox(text="compare with a second method", value=False)
         self._second = MethodPanel("second method", "admm")
-        self._truth = image_layer_box(napari_viewer, "ground truth", fit=ground_truth_fit,
+        self._truth = image_layer_box(napari_viewer, "ground truth", fit=self._truth_fit,
                                       nullable=True,
-                                      tooltip="optional: the true object (S×S) for PSNR/SSIM")
+                                      tooltip="optional: the true object (S×S) of the raw "
+                                              "frame's simulated scene, for PSNR/SSIM")
         self._device = ComboBox(label="device", choices=available_devices())
         self._views = CheckBox(text="add the demixed views", value=False)
         self._warning = Label(value="")
@@ -162,6 +176,7 @@ class ReconstructWidget(Container):
         self._cancel = PushButton(text="Cancel", enabled=False)
         self._progress = ProgressBar(min=0, max=STEPS, value=0, label="progress")
         self._status = Label(value="")
+        self._status.native.setWordWrap(True)
         self._results = Label(value="")
         self._results.native.setWordWrap(True)
         self._command = PushButton(text="Copy CLI command (for a folder)")
@@ -198,7 +213,23 @@ class ReconstructWidget(Container):
         if system is not None:
             self._panel.set_system(system)
             self._second.set_system(system)
+        if hasattr(self, "_truth"):  # the raw frame's own truth, or none
+            self._truth.refit()
         self._update_warning()
+
+    def _truth_fit(self, layer: Any) -> int:
+        """A ground truth fits when it is an object layer of the raw frame's scene."""
+        raw = self._layer.value
+        return ground_truth_fit(layer) * int(raw is not None and
+                                             same_scene(layer.metadata, raw.metadata))
+
+    def _scored_truth(self, raw: napari.layers.Image) -> tuple[Any, str | None]:
+        """The chosen ground truth if it is of ``raw``'s scene, else ``None`` and why."""
+        truth = self._truth.value
+        if truth is None or same_scene(truth.metadata, raw.metadata):
+            return truth, None
+        return None, (f"{truth.name!r} is the truth of another scene than {raw.name!r}, "
+                      "so the run is not scored")
 
     @staticmethod
     def _layer_system(layer: napari.layers.Image | None) -> SystemConfig | None:
@@ -284,8 +315,7 @@ class ReconstructWidget(Container):
             raise ValueError(f"layer {layer.name!r} holds {bad} NaN or Inf values")
         return frames if frames.ndim == 3 else frames[None]
 
-    def _truth_plane(self, system: SystemConfig) -> np.ndarray | None:
-        layer = self._truth.value
+    def _truth_plane(self, layer: Any, system: SystemConfig) -> np.ndarray | None:
         if layer is None:
             return None
         plane = np.asarray(layer.data[current_index(layer, self._viewer.dims.point)],
@@ -305,24 +335,27 @@ class ReconstructWidget(Container):
         """
         layer = self._layer.value
         if layer is None:
+            self._status.value = "Not run: no raw image layer."
             notify_error("No raw image layer to reconstruct.",
                          "open a raw CM² frame (File ▸ Open) or a sample (File ▸ Open Sample)")
             return None
         compare = self._compare.value
-        names = ([f"{RECONSTRUCTION} A ({self._panel.method.value})",
-                  f"{RECONSTRUCTION} B ({self._second.method.value})"] if compare
-                 else [RECONSTRUCTION])
+        slots = ["A", "B"] if compare else [None]
+        truth_layer, unscored = self._scored_truth(layer)
         try:
             system = self._layer_system(layer)
             jobs, systems = [], []
-            for panel, name in zip(self._panels(), names, strict=True):
+            for panel, slot in zip(self._panels(), slots, strict=True):
+                name = f"{slot}: {_label(panel)}" if slot else RECONSTRUCTION
                 job, job_system = self._job(panel, system, name)
+                job.slot = slot
                 jobs.append(job)
                 systems.append(job_system)
             system = systems[0]
             frames = self._frames(layer, system)
-            truth = self._truth_plane(system)
+            truth = self._truth_plane(truth_layer, system)
         except (ValueError, FileNotFoundError) as err:
+            self._status.value = f"Not run: {str(err).splitlines()[0]}"
             notify_error(err, "check the raw layer, its system (Calibration) and the model")
             return None
         for problem, fix in frame_warnings(frames):  # what the core would warn about
@@ -331,6 +364,7 @@ class ReconstructWidget(Container):
         if warning and self._confirmed != self._settings_key():
             self._confirmed = self._settings_key()
             self._run.text = "Reconstruct anyway"
+            self._status.value = "Not run yet: press 'Reconstruct anyway' to confirm."
             notify_warning(warning, "press 'Reconstruct anyway' to run, or change the "
                                     "settings (tile size, frames, iterations)")
             return None
@@ -338,7 +372,12 @@ class ReconstructWidget(Container):
         if compare:
             frames, first = frames[first:first + 1], 0
         views = self._views.value and not compare
+        if compare:
+            self._remove_compared(jobs)
+        if unscored:
+            show_info(f"Not scored: {unscored}.")
         self._prepare(layer, system, jobs, frames.shape[0], first, truth, views)
+        self._state.update(truth_layer=truth_layer, unscored=unscored)
         worker = thread_worker(yielding_failure, start_thread=False)(
             run_jobs, jobs, frames, first, views)
         worker.yielded.connect(self._on_yielded)
@@ -351,6 +390,14 @@ class ReconstructWidget(Container):
         worker.start()
         return worker
 
+    def _remove_compared(self, jobs: list[Job]) -> None:
+        """Remove the panels of an earlier comparison whose names (knobs) differ."""
+        names = {job.layer_name for job in jobs}
+        layers = self._viewer.layers
+        for layer in [layer for layer in layers if layer.metadata.get(COMPARE_KEY)]:
+            if layer.name not in names:
+                layers.remove(layer)
+
     def _prepare(self, layer: napari.layers.Image, system: SystemConfig, jobs: list[Job],
                  count: int, first: int, truth: np.ndarray | None, views: bool) -> None:
         size = system.sub_view_size
@@ -359,7 +406,7 @@ class ReconstructWidget(Container):
             system=system, jobs=jobs, count=count, first=first, truth=truth,
             lead=lead, translate=object_translate(system), raw=layer,
             shapes=((count, size, size), (9, count, size, size) if views else None),
-            done=[], started=time.perf_counter(),
+            done=[], started=time.perf_counter(), outcome=None,
         )
         self.frames_done = 0
         self.results = []
@@ -374,6 +421,8 @@ class ReconstructWidget(Container):
         if self.worker is not None:
             self.worker.quit()
         self._cancel.enabled = False
+        if self._state:
+            self._state["outcome"] = "cancelled"
         self._status.value = "Cancelling after the current step…"
 
     def _set_progress(self, job: int, frames_done: int, fraction: float, text: str,
@@ -432,7 +481,9 @@ class ReconstructWidget(Container):
 
     def _record(self, item: FrameDone, job: Job) -> None:
         """The seconds and (with a ground truth) quality of the job's first frame."""
-        entry = {"method": job.method, "layer": job.layer_name, "seconds": item.seconds}
+        label = job.layer_name.split(": ", 1)[-1] if job.slot else METHOD_TITLES[job.method]
+        entry = {"method": job.method, "layer": job.layer_name, "label": label,
+                 "seconds": item.seconds}
         truth = self._state["truth"]
         if truth is not None:
             span = float(truth.max() - truth.min()) or 1.0
@@ -453,12 +504,17 @@ class ReconstructWidget(Container):
         lead = tuple(value + low for value in state["lead"])
         raw, origin = state["raw"], state["translate"]
         meta = layer_metadata(state["system"], RECONSTRUCTION, job.description)
+        frames = {} if single else {FRAMES_KEY: {"first": low, "stop": high,
+                                                 "total": state["count"]}}
+        meta.update(frames)
+        if job.slot:
+            meta[COMPARE_KEY] = job.slot
         data = state["recon"][0] if single else state["recon"][low:high]
         self._put_layer(job.layer_name, data, placement_over(raw, data.ndim, origin, lead), meta,
                         ("frame",) if not single else (), colormap="magma")
         if state["views"] is not None:
             views = state["views"][:, 0] if single else state["views"][:, low:high]
-            meta = layer_metadata(state["system"], "demixed", job.description)
+            meta = {**layer_metadata(state["system"], "demixed", job.description), **frames}
             self._put_layer(DEMIXED, views, placement_over(raw, views.ndim, origin, (0.0, *lead)),
                             meta, ("lens",) + (("frame",) if not single else ()),
                             colormap="gray", visible=False)
@@ -487,34 +543,65 @@ class ReconstructWidget(Container):
             layer.reset_contrast_limits()
 
     def _on_errored(self, err: Exception) -> None:
+        self._state["outcome"] = "failed"
+        self._state["error"] = str(err).splitlines()[0] if str(err) else type(err).__name__
         notify_error(err, "check the method's options and model file")
 
     def _on_aborted(self) -> None:
         state = self._state
+        state["outcome"] = "cancelled"
         show_info(f"Reconstruction cancelled after {self.frames_done} of {state['count']} "
                   "frames; only those were added.")
 
     def _on_finished(self) -> None:
         state = self._state
         self._run.enabled, self._cancel.enabled = True, False
+        total = STEPS * state["count"] * len(state["jobs"])
         if state.get("busy"):
             state["busy"] = False
-            self._progress.native.setRange(0, STEPS * state["count"] * len(state["jobs"]))
+            self._progress.native.setRange(0, total)
         elapsed = time.perf_counter() - state["started"]
-        if state.get("shown") == self._progress.max:
-            self._status.value = f"Done in {elapsed:.1f} s."
+        # the bar shows what was kept: the jobs finished and this job's frames done
+        kept = STEPS * (state.get("job", 0) * state["count"] + self.frames_done)
+        outcome = state["outcome"]
+        if outcome is None and kept < total:
+            outcome = "cancelled"  # stopped without an error: a cancel
+        if outcome == "failed":
+            self._progress.value = min(kept, total)
+            self._status.value = f"Failed after {elapsed:.1f} s: {state['error']}"
+        elif outcome == "cancelled":
+            self._progress.value = min(kept, total)
+            self._status.value = (f"Cancelled after {elapsed:.1f} s: {self.frames_done} of "
+                                  f"{state['count']} frames kept.")
         else:
-            self._status.value = f"Stopped after {elapsed:.1f} s."
-        if len(state["jobs"]) > 1:
+            self._progress.value = total
+            self._status.value = f"Done in {elapsed:.1f} s."
+        if state.get("unscored"):
+            self._status.value += f" Not scored: {state['unscored']}."
+        if len(state["jobs"]) > 1 and all(job.layer_name in self._viewer.layers
+                                          for job in state["jobs"]):
             self._show_side_by_side()
 
     def _show_side_by_side(self) -> None:
-        """Grid view: the ground truth (if any) and both reconstructions, each in a cell."""
+        """Grid view: the ground truth (if scored) and both reconstructions, each in a cell
+        named by its method and knobs, with one contrast range for both."""
         layers = self._viewer.layers
         names = [job.layer_name for job in self._state["jobs"]]
-        truth = self._truth.value
+        truth = self._state.get("truth_layer")
         for layer in layers:
             layer.visible = layer.name in names or layer is truth
+        panels = [layers[name] for name in names]
+        low = min(float(np.min(layer.data)) for layer in panels)
+        high = max(float(np.max(layer.data)) for layer in panels)
+        layers.unlink_layers(panels, attributes=("contrast_limits",))
+        for layer in panels:
+            layer.contrast_limits_range = (low, high if high > low else low + 1.0)
+        layers.link_layers(panels, attributes=("contrast_limits",))
+        panels[0].contrast_limits = (low, high if high > low else low + 1.0)
+        for layer in [*panels, *([truth] if truth is not None else [])]:
+            overlay = getattr(layer, "name_overlay", None)  # napari 0.6 and later
+            if overlay is not None:
+                overlay.visible = True
         canvas = getattr(self._viewer, "canvas", None)
         grid = canvas.grid if canvas is not None and hasattr(canvas, "grid") else \
             self._viewer.grid
@@ -571,8 +658,16 @@ def _returning(value: Any) -> Callable[[], Any]:
     return lambda: value
 
 
+def _label(panel: MethodPanel) -> str:
+    """The method and its knobs, e.g. ``"LSV-ADMM (TV), 10 iterations, λ auto"``."""
+    knobs = [KNOBS[key].format(value) for key, value in panel.options().items()
+             if key in KNOBS and value is not None and value != "fp32"]
+    return ", ".join([panel.describe(), *knobs])
+
+
 def _summary(entry: dict[str, Any]) -> str:
-    text = f"{METHOD_TITLES[entry['method']]}: {entry['seconds']:.1f} s"
+    label = entry.get("label") or METHOD_TITLES[entry["method"]]
+    text = f"{label}: {entry['seconds']:.1f} s"
     if "psnr" in entry:
         text += (f" · PSNR {entry['psnr']:.1f} dB (centre {entry['psnr_centre']:.1f}, "
                  f"ring {entry['psnr_ring']:.1f}) · SSIM {entry['ssim']:.3f}")

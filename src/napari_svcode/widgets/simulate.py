@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import uuid
 from pathlib import Path
 
 import napari
 import numpy as np
-from magicgui.widgets import CheckBox, Container, PushButton, SpinBox
+from magicgui.widgets import CheckBox, Container, FloatSpinBox, PushButton, SpinBox
 from napari.qt.threading import FunctionWorker
 from napari.utils.notifications import show_warning
 
@@ -15,11 +16,13 @@ from svcode_core.phantoms import from_image
 from svcode_core.physics.cm2 import simulation_cost
 from svcode_core.physics.simulate import Simulation
 
+from .._errors import notify_warning
 from .._layers import (
     current_index,
     in_micrometres,
     layer_metadata,
     notify_error,
+    object_translate,
     placement,
     show_scale_bar,
 )
@@ -31,6 +34,8 @@ __all__ = ["SimulateWidget"]
 
 #: simulations estimated above these are announced before they start
 LARGE_MEMORY, LONG_SECONDS = 1 << 30, 10.0
+#: a simulated frame with more of its pixels at the sensor's full scale is warned about
+SATURATED = 0.01
 
 
 class SimulateWidget(Container):
@@ -38,9 +43,13 @@ class SimulateWidget(Container):
 
     The displayed plane of the chosen layer is cropped to a square, resized to the
     ``S × S`` object grid and normalised (:func:`svcode_core.phantoms.from_image`), then
-    imaged with the system's SV forward model and sensor noise in a worker thread. The
-    raw frame is added as ``"<layer> (simulated raw)"`` with the system in its metadata,
-    in object-space µm when the system knows its pixel size.
+    scaled to the chosen *object peak* (its brightest pixel, in units of the sensor's full
+    scale: the brightness) and imaged with the system's SV forward model and sensor noise
+    in a worker thread. The raw frame is added as ``"<layer> (simulated raw)"`` and the
+    object as ``"<layer> (simulated truth)"`` on the object grid over it (hidden), both
+    with the system and one scene id in their metadata (the Reconstruct widget scores
+    against this truth), in object-space µm when the system knows its pixel size. A frame
+    with more than 1 % of its pixels saturated is warned about.
     A simulation estimated (:func:`svcode_core.physics.cm2.simulation_cost`) to need more than
     1 GiB or 10 s is announced with its estimate first; one needing more memory than the
     machine has available is refused.
@@ -52,9 +61,13 @@ class SimulateWidget(Container):
         self._system_choice = SystemChooser(from_layer=False)
         self._seed = SpinBox(label="noise seed", min=0, max=2**31 - 1, value=0)
         self._noise = CheckBox(text="sensor noise", value=True)
+        self._peak = FloatSpinBox(label="object peak", min=0.001, max=100.0, step=0.05,
+                                  value=1.0, tooltip="brightness: the object's brightest pixel "
+                                  "in units of the sensor's full scale (lower it if the raw "
+                                  "frame saturates)")
         self._run = PushButton(text="Simulate")
-        super().__init__(widgets=[self._layer, self._system_choice, self._seed, self._noise,
-                                  self._run])
+        super().__init__(widgets=[self._layer, self._system_choice, self._peak, self._seed,
+                                  self._noise, self._run])
         self._run.changed.connect(self.start)
         self.worker: FunctionWorker | None = None
 
@@ -71,7 +84,7 @@ class SimulateWidget(Container):
             return None
         plane = np.asarray(layer.data[current_index(layer, self._viewer.dims.point)])
         try:
-            obj = from_image(plane, system.sub_view_size)
+            obj = from_image(plane, system.sub_view_size) * np.float32(self._peak.value)
         except ValueError as err:
             notify_error(err, "choose a grey or RGB image without NaN or Inf values")
             return None
@@ -107,12 +120,23 @@ class SimulateWidget(Container):
         return True
 
     def _add(self, name: str, scene: Simulation, system: SystemConfig) -> None:
+        scene_id = f"simulated {name} seed {self._seed.value} {uuid.uuid4().hex[:8]}"
+        self._viewer.add_image(scene.object, name=f"{name} (simulated truth)",
+                               colormap="magma", visible=False,
+                               metadata=layer_metadata(system, "object", scene=scene_id),
+                               **placement(system, 2, object_translate(system)))
         place = placement(system)
         self._viewer.add_image(scene.measurement, name=f"{name} (simulated raw)",
-                               colormap="gray", metadata=layer_metadata(system, "measurement"),
-                               **place)  # fmt: skip
+                               colormap="gray", **place,
+                               metadata=layer_metadata(system, "measurement", scene=scene_id))
         if in_micrometres(place):
             show_scale_bar(self._viewer)
+        full = system.noise.saturation  # the sensor's clipping level
+        saturated = float(np.mean(scene.measurement >= full))
+        if saturated > SATURATED:
+            notify_warning(f"{saturated:.0%} of the simulated frame's pixels are saturated "
+                           f"(at the sensor's full scale {full:g})",
+                           "lower the object peak (brightness) and simulate again")
 
 
 def _available_memory() -> int | None:
