@@ -14,7 +14,7 @@ pytest.importorskip("napari")
 from napari.layers import Layer  # noqa: E402
 
 from napari_svcode._layers import KIND_KEY, MODEL_KEY, SYSTEM_KEY, object_translate  # noqa: E402
-from napari_svcode._reader import get_reader  # noqa: E402
+from napari_svcode._reader import get_reader, read_cm2_tiff  # noqa: E402
 from napari_svcode._sample_data import sample_layers  # noqa: E402
 from svcode_core.io import read_tiff, write_tiff  # noqa: E402
 
@@ -165,3 +165,5 @@ def test_sample_truth_and_frame_share_a_scene_and_the_writer_keeps_the_frames(
     path = tmp_path / "partial.tif"
     layer.save(str(path), plugin=PLUGIN)
     assert read_tiff(path)[2]["frames"] == frames
+    [(_, reopened, _)] = read_cm2_tiff(str(path))  # and back into the layer on reopening
+    assert reopened["metadata"]["svcode_frames"] == frames

@@ -8,6 +8,7 @@ from pathlib import Path
 from svcode_core.io import read_tiff
 
 from ._layers import (
+    FRAMES_KEY,
     in_micrometres,
     layer_metadata,
     object_translate,
@@ -51,11 +52,10 @@ def read_cm2_tiff(path: str | list[str]) -> list[tuple]:
             origin = object_translate(system)
         place = placement(system, array.ndim, origin, pixel_size_um=meta.get("pixel_size_um"))
         sized = sized or in_micrometres(place)
-        kwargs = {
-            "name": Path(item).name.split(".")[0],
-            "metadata": layer_metadata(system, kind, model),
-            **place,
-        }
+        metadata = layer_metadata(system, kind, model)
+        if meta.get("frames") is not None:  # a partial stack: which raw frames it holds
+            metadata[FRAMES_KEY] = dict(meta["frames"])
+        kwargs = {"name": Path(item).name.split(".")[0], "metadata": metadata, **place}
         layers.append((array, kwargs, "image"))
     if sized:
         show_scale_bar()
