@@ -159,6 +159,7 @@ def test_progress_and_cancel(tiny_system):
         (lambda s: np.where(np.eye(*s.sensor_shape) > 0, np.inf, 0.0), "NaN or Inf"),
         (lambda s: np.zeros((50, 50)), r"50×50 pixels but system 'tiny' expects .* 60×80"),
         (lambda s: np.zeros(s.padded_shape), "padded size"),
+        (lambda s: np.ones((*s.sensor_shape, 3), np.uint8), "a colour image"),
         (lambda s: np.zeros((0, *s.sensor_shape)), "empty"),
         (lambda s: np.zeros(s.sensor_shape[0]), "shape"),
         (lambda s: np.zeros((1, 1, *s.sensor_shape)), "shape"),

@@ -121,6 +121,9 @@ def check_frame_shape(shape: tuple[int, ...], system: SystemConfig) -> None:
     hint = ""
     if tuple(shape) == tuple(system.padded_shape):
         hint = " (this is the padded size: pass the raw, unpadded sensor frame)"
+    elif len(shape) == 2 and shape[-1] in (3, 4):
+        hint = (" (a colour image, read as a stack of its rows? a CM² frame is grey: one "
+                "value per sensor pixel)")
     raise ValueError(
         f"frame is {got} pixels but system {system.name!r} expects raw sensor frames of "
         f"{expected[0]}×{expected[1]}{hint}; check that the system configuration "

@@ -180,7 +180,7 @@ def _check_range(values: np.ndarray, index: int) -> None:
         _warn(_BLANK)
     if top <= 0 < -bottom:
         raise ValueError(
-            f"frame {index} has no positive value (it lies in [{bottom:.4g}, {top:.4g}]); "
+            f"frame {index} has no positive value (it lies in [{bottom:.4g}, {top + 0.0:.4g}]); "
             "negative readings are clipped at 0, so nothing would be left: check the sign "
             "and any dark-frame subtraction"
         )
