@@ -1,5 +1,7 @@
 import argparse
+import inspect
 import pickle
+import threading
 
 import numpy as np
 import pytest
@@ -11,6 +13,7 @@ from test_cm2 import gaussian_psfs
 from svcode_core.cli.reconstruct import add_method_arguments, baseline_options
 from svcode_core.config import OpticsConfig, system_from_scale
 from svcode_core.evaluation.metrics import psnr
+from svcode_core.methods.base import FrameProgress
 from svcode_core.methods.baselines import BaselineReconstructor, reconstruct_with_baseline
 from svcode_core.methods.baselines.admm import (
     LsvAdmm,
@@ -28,6 +31,7 @@ from svcode_core.methods.baselines.deconv import (
     wiener_deconvolve,
 )
 from svcode_core.methods.build import MethodSpec
+from svcode_core.methods.tiling import Cancelled
 from svcode_core.physics.cm2 import CM2Operator
 from svcode_core.physics.geometry import extract_sub_views, pad_sensor_frame
 
@@ -304,6 +308,72 @@ def test_stack_views_and_spec(tiny_system, tiny_op):
         BaselineReconstructor("wiener", tiny_system, operator=tiny_op, iterations=5)
     with pytest.raises(ValueError, match="method"):
         BaselineReconstructor("svcode", tiny_system, operator=tiny_op)
+
+
+ITERATIVE = {"admm": {"iterations": 6, "tolerance": 0.0}, "rl": {"iterations": 6}}
+
+
+def _three_frames(system, op):
+    """Two frames with signal around a blank one (which skips the solver)."""
+    x = disc_object(system.sub_view_size)
+    raw = op.measure(x).numpy()
+    return np.stack([raw, np.zeros_like(raw), 0.5 * raw])
+
+
+@pytest.mark.parametrize("method", ["admm", "rl", "wiener"])
+def test_progress_per_iteration_and_the_same_result(tiny_system, tiny_op, method, drain):
+    """LSV-ADMM and RL report before every frame and after every iteration (``tiles_done``
+    the iterations done); Wiener once per frame; the result is that of reconstruct()."""
+    rec = BaselineReconstructor(method, tiny_system, operator=tiny_op, **ITERATIVE.get(method, {}))
+    stack = _three_frames(tiny_system, tiny_op)
+    with pytest.warns(UserWarning, match="blank frames"):
+        progress, result = drain(rec.iter_reconstruct(stack, return_views=True))
+    total, done = (6, range(7)) if method in ITERATIVE else (1, [0])
+    expected = [FrameProgress(0, 3, i, total) for i in done]
+    expected += [FrameProgress(1, 3, 0, total)]  # blank: nothing to iterate
+    expected += [FrameProgress(2, 3, i, total) for i in done]
+    assert progress == expected
+    with pytest.warns(UserWarning, match="blank frames"):
+        whole = rec.reconstruct(stack, return_views=True)
+    np.testing.assert_array_equal(result.reconstruction, whole.reconstruction)
+    np.testing.assert_array_equal(result.views, whole.views)
+
+
+@pytest.mark.parametrize("method", ["admm", "rl"])
+@pytest.mark.parametrize("stop", ["close", "cancel"])
+def test_a_stop_between_iterations_ends_the_frame(tiny_system, tiny_op, method, stop):
+    """Closing the generator (or setting ``cancel``) at iteration 3 of the last frame runs
+    no further iteration, closes the solver's loop and returns nothing; the reconstructor
+    then runs as before."""
+    rec = BaselineReconstructor(method, tiny_system, operator=tiny_op, **ITERATIVE[method])
+    loops = []  # every frame's solver loop, to see it closed
+    solve = rec.solver.iter_solve
+
+    def watched(*args):
+        loops.append(solve(*args))
+        return loops[-1]
+
+    rec.solver.iter_solve = watched
+    stack = _three_frames(tiny_system, tiny_op)[[0, 2]]
+    cancel = threading.Event()
+    steps = rec.iter_reconstruct(stack, cancel=cancel)
+    seen = []
+    for progress in steps:
+        seen.append(progress)
+        if progress == FrameProgress(1, 2, 3, 6):
+            break
+    if stop == "close":
+        steps.close()
+    else:
+        cancel.set()
+        with pytest.raises(Cancelled):
+            next(steps)
+    assert seen[-1] == FrameProgress(1, 2, 3, 6) and len(seen) == 7 + 4
+    assert len(loops) == 2 and all(inspect.getgeneratorstate(loop) == "GEN_CLOSED"
+                                   for loop in loops)
+    fresh = BaselineReconstructor(method, tiny_system, operator=tiny_op, **ITERATIVE[method])
+    np.testing.assert_array_equal(rec.reconstruct(stack).reconstruction,
+                                  fresh.reconstruct(stack).reconstruction)
 
 
 def test_command_line_options():

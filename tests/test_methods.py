@@ -53,7 +53,8 @@ def test_iter_method_yields_progress_for_any_method(tiny_system, tiny_model_conf
     stack = _frames(tiny_system, 2)
     rl = build_reconstructor("rl", tiny_system, iterations=2)
     progress, result = drain(iter_method(rl, stack, return_views=True))
-    assert progress == [FrameProgress(0, 2, 0, 1), FrameProgress(1, 2, 0, 1)]
+    # RL reports before each frame and after each of its iterations
+    assert progress == [FrameProgress(f, 2, i, 2) for f in (0, 1) for i in (0, 1, 2)]
     expected = rl.reconstruct(stack, return_views=True)
     np.testing.assert_allclose(result.reconstruction, expected.reconstruction, atol=1e-6)
     assert result.views.shape == expected.views.shape

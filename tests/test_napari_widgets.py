@@ -1216,3 +1216,64 @@ def test_frames_the_core_would_warn_about_are_named_before_the_run(
     assert any("at most 12 bits" in cause for cause in causes), warnings
     assert any("blank frames" in cause for cause in causes), warnings
     assert all(len(message.split("\n")) == 2 for message in warnings)
+
+
+def test_lsv_admm_shows_its_iterations_and_a_cancel_keeps_the_frames_done(
+        qtbot, monkeypatch, tiny_system, make_napari_viewer):
+    """LSV-ADMM fills the bar iteration by iteration (determinate, with the time left at the
+    pace so far); a cancel at iteration 5 of frame 2 runs no further iteration and keeps
+    frame 1 only."""
+    import napari_svcode.widgets.reconstruct as module
+    from svcode_core.methods.baselines.admm import LsvAdmm
+
+    viewer = make_napari_viewer()
+    stack = _raw_stack(tiny_system, 3)
+    viewer.add_image(stack, name="raw", metadata=layer_metadata(tiny_system, "measurement"))
+    viewer.dims.set_current_step(0, 0)
+    widget = _dock(viewer, ReconstructWidget)
+    widget._panel.method.value = "admm"
+    widget._panel.iterations.value = 40
+    starts: list[int] = []
+    ran: list[tuple[int, int]] = []  # (frame, iteration), recorded in the worker
+    solve = LsvAdmm.iter_solve
+
+    def watched(self, *args):
+        frame = len(starts)
+        starts.append(frame)
+
+        def hook(iteration, estimate):
+            ran.append((frame, iteration))
+            if (frame, iteration) == (1, 5):
+                widget.worker.quit()  # as Cancel does, from the worker: mid-frame for sure
+
+        return solve(self, *args, callback=hook)
+
+    monkeypatch.setattr(LsvAdmm, "iter_solve", watched)
+    shown: list[tuple[str, int, int]] = []  # status, bar maximum, bar value
+    set_progress = widget._set_progress
+
+    def spy(*args, **kwargs) -> None:
+        set_progress(*args, **kwargs)
+        shown.append((args[3], widget._progress.native.maximum(), widget._progress.value))
+
+    widget._set_progress = spy
+    assert widget.start() is not None
+    _wait_done(qtbot, widget)
+    within = [(top, value) for text, top, value in shown if "frame 1 of 3, iteration" in text]
+    assert within and all(top == 3 * STEPS for top, _ in within)  # determinate
+    assert any(0 < value < STEPS for _, value in within)  # part of a frame
+    assert any("frame 2 of 3, iteration 5/40" in text for text, _, _ in shown)
+    assert starts == [0, 1] and max(i for f, i in ran if f == 1) == 5
+    assert widget.frames_done == 1 and widget._progress.value == STEPS
+    assert widget._status.value.startswith("Cancelled") and "1 of 3" in widget._status.value
+    recon = viewer.layers["reconstruction"]
+    expected = widget._state["jobs"][0].build().reconstruct(stack[0]).reconstruction
+    np.testing.assert_array_equal(recon.data, expected[None])
+    # the time left: the frames still to do at the pace since the job's first report
+    times = [10.0, 12.0]
+    with monkeypatch.context() as patch:
+        patch.setattr(module.time, "perf_counter", lambda: times.pop(0) if times else 12.0)
+        widget._state.update(count=4)
+        widget._state.pop("pace", None)
+        assert widget._time_left(1.0) == ""
+        assert widget._time_left(2.0) == ", about 4 s left"

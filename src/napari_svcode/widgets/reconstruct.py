@@ -141,10 +141,11 @@ def reconstruct_frames(
 class ReconstructWidget(Container):
     """Reconstruct a raw CM² frame or stack with any method, or compare two methods.
 
-    *Reconstruct* runs the chosen method in a worker thread (progress below the button;
-    *Cancel* stops within one batch of tiles or before a frame's periphery refinement
-    (the status line says when one runs), or after the current frame for the other
-    methods) and adds ``"reconstruction"`` (``(S, S)`` or ``(T, S, S)``) and, if asked,
+    *Reconstruct* runs the chosen method in a worker thread (progress and time left below
+    the button; *Cancel* stops within one batch of tiles or before a frame's periphery
+    refinement (the status line says when one runs), within one iteration of LSV-ADMM or
+    RL, or after the current frame for the other methods; a frame stopped part way is not
+    added) and adds ``"reconstruction"`` (``(S, S)`` or ``(T, S, S)``) and, if asked,
     ``"demixed views"`` (``(9, S, S)`` or ``(9, T, S, S)``, axis ``lens`` first), placed
     over the raw frame. A stack runs from the current frame to the end, then backwards,
     and its layers hold only the frames done (``svcode_frames`` in their metadata says
@@ -417,7 +418,7 @@ class ReconstructWidget(Container):
 
     # ---------------------------------------------------------------- running
     def cancel(self) -> None:
-        """Ask the worker to stop after the batch of tiles (or the frame) it is running."""
+        """Ask the worker to stop after the batch of tiles, iteration or frame it is running."""
         if self.worker is not None:
             self.worker.quit()
         self._cancel.enabled = False
@@ -429,7 +430,7 @@ class ReconstructWidget(Container):
                       force: bool = True, busy: bool = False) -> None:
         """Show the progress (coalesced to :data:`STEPS` a frame) and ``text``; ``busy``
         makes the bar indeterminate while a step reports nothing of its own (building a
-        forward model, a frame of a method without tiles)."""
+        forward model, a frame of a method without tiles or iterations)."""
         state = self._state
         total = STEPS * state["count"] * len(state["jobs"])
         if busy != state.get("busy", False):
@@ -444,6 +445,17 @@ class ReconstructWidget(Container):
             self._progress.value = value
         self._status.value = text
 
+    def _time_left(self, frames: float) -> str:
+        """``", about N s left"`` for the running job, ``frames`` of its frames done, at
+        its pace since its first report; empty for the first second."""
+        state = self._state
+        now = time.perf_counter()
+        since, start = state.setdefault("pace", (now, frames))
+        seconds, gained = now - since, frames - start
+        if seconds < 1.0 or gained <= 0:
+            return ""
+        return f", about {(state['count'] - frames) * seconds / gained:.0f} s left"
+
     def _on_yielded(self, item: Started | FrameProgress | FrameDone | Failed) -> None:
         # Only widget and layer updates here: never process events from a worker callback.
         if isinstance(item, Failed):
@@ -456,18 +468,24 @@ class ReconstructWidget(Container):
             recon, views = state["shapes"]
             state.update(job=item.job, done=[], recon=np.zeros(recon, np.float32),
                          views=None if views is None else np.zeros(views, np.float32))
+            state.pop("pace", None)
             self._set_progress(item.job, 0, 0.0, f"{title}: preparing…", busy=True)
             return
         done = len(state["done"])
         where = f"frame {done + 1} of {state['count']}" if state["count"] > 1 else "frame"
         if isinstance(item, FrameProgress):
             fraction = item.tiles_done / item.tiles_total if item.tiles_total else 0.0
-            tiled = job.method == "svcode" and not item.refining
-            tiles = f", tiles {item.tiles_done}/{item.tiles_total}" if tiled else " running…"
+            # SV-CoDe counts tiles, LSV-ADMM and RL iterations; a one-step frame (0 of 1)
+            # reports nothing until it is done
+            svcode = job.method == "svcode"
+            stepped = not item.refining and (svcode or item.tiles_total > 1)
+            unit = "tiles" if svcode else "iteration"
+            steps = f", {unit} {item.tiles_done}/{item.tiles_total}" if stepped else " running…"
             if item.refining:
-                tiles = ", refining the periphery…"
-            self._set_progress(state["job"], done, fraction, f"{title}: {where}{tiles}",
-                               force=False, busy=not tiled)
+                steps = ", refining the periphery…"
+            self._set_progress(state["job"], done, fraction,
+                               f"{title}: {where}{steps}{self._time_left(done + fraction)}",
+                               force=False, busy=not stepped)
             return
         state["done"].append(item.index)
         state["recon"][item.index] = item.result.reconstruction

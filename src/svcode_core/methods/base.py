@@ -17,11 +17,13 @@ same way:
   (:mod:`svcode_core.methods.registry`), turned into a dtype by :func:`precision_dtype`.
 
 :class:`FrameByFrame` supplies the loop for the methods that reconstruct a whole frame at a
-time; SV-CoDe yields tile by tile instead.
+time (yielding before every frame and, for the iterative ones, after every iteration);
+SV-CoDe yields tile by tile instead.
 """
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from abc import ABC, abstractmethod
@@ -234,14 +236,19 @@ class BaseReconstructor(ABC):
 
 
 class FrameByFrame(BaseReconstructor):
-    """A method that reconstructs one whole frame at a time: it yields once per frame
-    (``tiles_done`` 0 of 1) and implements :meth:`reconstruct_frame`.
+    """A method that reconstructs one whole frame at a time and implements
+    :meth:`reconstruct_frame`.
 
-    A method without demixed views sets ``has_views = False``: asking for them raises
-    :class:`ValueError` before any work.
+    It yields before every frame (``tiles_done`` 0 of :attr:`frame_steps`) and, for an
+    iterative method that overrides :meth:`iter_reconstruct_frame`, after every iteration
+    (``tiles_done`` the iterations done), so that a frame's progress is known and a cancel
+    stops between iterations. A method without demixed views sets ``has_views = False``:
+    asking for them raises :class:`ValueError` before any work.
     """
 
     has_views = True
+    #: the steps :meth:`iter_reconstruct_frame` reports for a frame (its ``tiles_total``)
+    frame_steps: int = 1
 
     def start_stack(self) -> None:
         """Called before the first frame of every input (e.g. to drop a warm start)."""
@@ -252,6 +259,16 @@ class FrameByFrame(BaseReconstructor):
     ) -> tuple[np.ndarray, np.ndarray | None]:
         """Frame ``index`` of the input (checked for size) → ``(reconstruction (S, S),
         views (9, S, S) or None)`` as float32 arrays."""
+
+    def iter_reconstruct_frame(
+        self, frame: np.ndarray, index: int, return_views: bool
+    ) -> Generator[int, None, tuple[np.ndarray, np.ndarray | None]]:
+        """Generator form of :meth:`reconstruct_frame`: yields the steps done (of
+        :attr:`frame_steps`) after every step and returns its result; this one runs it as
+        one step that reports nothing."""
+        output = self.reconstruct_frame(frame, index, return_views)
+        yield from ()
+        return output
 
     def iter_reconstruct(
         self, frames: Any, return_views: bool = False, cancel: threading.Event | None = None
@@ -265,12 +282,23 @@ class FrameByFrame(BaseReconstructor):
         start = time.perf_counter()
         self.start_stack()
         recons, views = [], []
+        count, total = len(stack), self.frame_steps
         for index, frame in enumerate(stack):
             if cancel is not None and cancel.is_set():
                 raise Cancelled("reconstruction cancelled")
-            yield FrameProgress(index, len(stack), 0, 1)
+            yield FrameProgress(index, count, 0, total)
             if np.any(frame):
-                recon, view = self.reconstruct_frame(frame, index, return_views)
+                steps = self.iter_reconstruct_frame(frame, index, return_views)
+                with contextlib.closing(steps):  # a close or cancel here stops the frame too
+                    while True:
+                        try:
+                            done = next(steps)
+                        except StopIteration as stop:
+                            recon, view = stop.value
+                            break
+                        yield FrameProgress(index, count, done, total)
+                        if cancel is not None and cancel.is_set():
+                            raise Cancelled("reconstruction cancelled")
             else:  # a blank frame is 0 by every method (no warm start from the last frame)
                 finite_frame(frame, index)  # says so
                 size = self.system.sub_view_size

@@ -165,7 +165,8 @@ def iter_method(
 ) -> Generator[FrameProgress, None, ReconstructionResult]:
     """Reconstruct a frame or a stack with any reconstructor, yielding progress.
 
-    SV-CoDe yields after every batch of tiles; the other methods once before each frame
+    SV-CoDe yields after every batch of tiles, LSV-ADMM and RL before each frame and after
+    every iteration (``tiles_done`` counting iterations), the others once before each frame
     (``tiles_done`` 0 of 1). Closing the generator stops it at the next yield. The result
     is the generator's return value, shaped like that of ``reconstructor.reconstruct``.
     """

@@ -74,7 +74,7 @@ noise ``γ`` = 2 gives about 1.6e-4, where 1e-4 to 1e-3 agree within 0.1 dB (1e-
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -85,6 +85,7 @@ from ...physics.cm2 import CM2Operator
 from ...physics.geometry import crop_to_sensor, pad_sensor_frame
 from ...physics.noise import estimate_noise_std
 from .. import registry
+from ..tiling import exhaust
 
 __all__ = [
     "AUTO_TV_GAIN",
@@ -352,7 +353,7 @@ class LsvAdmm:
         tolerance: float = _DEFAULTS["tolerance"],
         callback: Callable[[int, torch.Tensor], None] | None = None,
     ) -> AdmmResult:
-        """Reconstruct one padded sensor frame.
+        """Reconstruct one padded sensor frame (:meth:`iter_solve` run to the end).
 
         Parameters
         ----------
@@ -375,6 +376,19 @@ class LsvAdmm:
         ------
         FloatingPointError
             If the iteration produces a non-finite objective (it never should).
+        """
+        return exhaust(self.iter_solve(frame, x0, iterations, tolerance, callback))
+
+    def iter_solve(
+        self,
+        frame: torch.Tensor,
+        x0: torch.Tensor | None = None,
+        iterations: int = _DEFAULTS["iterations"],
+        tolerance: float = _DEFAULTS["tolerance"],
+        callback: Callable[[int, torch.Tensor], None] | None = None,
+    ) -> Generator[int, None, AdmmResult]:
+        """Generator form of :meth:`solve`: yields the number of iterations done after every
+        iteration and returns the :class:`AdmmResult`; closing it stops between iterations.
         """
         if not isinstance(iterations, int) or iterations < 1:
             raise ValueError(f"iterations must be a positive integer, got {iterations!r}")
@@ -430,6 +444,7 @@ class LsvAdmm:
             result.iterations = iteration
             if callback is not None:
                 callback(iteration, z[2])
+            yield iteration
             if iteration % self.check_every and iteration != iterations:
                 continue
             primal, dual, scale_primal, scale_dual = self._residuals(image, z, previous, d, rho)

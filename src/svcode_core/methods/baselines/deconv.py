@@ -37,6 +37,7 @@ shift-invariant image they agree with it:
 from __future__ import annotations
 
 import math
+from collections.abc import Generator
 
 import torch
 
@@ -44,11 +45,13 @@ from ...physics.cm2 import CM2Operator
 from ...physics.geometry import extract_sub_views, pad_sensor_frame
 from ...physics.lowrank import fft_shape
 from .. import registry
+from ..tiling import exhaust
 
 __all__ = [
     "ShiftInvariantDeconvolution",
     "centre_psfs",
     "fuse_views",
+    "iter_richardson_lucy",
     "lens_transmission",
     "richardson_lucy_deconvolve",
     "unit_centre_psfs",
@@ -154,6 +157,14 @@ def richardson_lucy_deconvolve(
     torch.Tensor
         Same shape and dtype as ``images``, non-negative.
     """
+    return exhaust(iter_richardson_lucy(images, psfs, iterations))
+
+
+def iter_richardson_lucy(
+    images: torch.Tensor, psfs: torch.Tensor, iterations: int
+) -> Generator[int, None, torch.Tensor]:
+    """Generator form of :func:`richardson_lucy_deconvolve`: yields the number of updates
+    done after every update and returns the estimate; closing it stops between updates."""
     _check_images(images, psfs)
     if not isinstance(iterations, int) or iterations < 1:
         raise ValueError(f"iterations must be a positive integer, got {iterations!r}")
@@ -171,9 +182,10 @@ def richardson_lucy_deconvolve(
 
     data = images.clamp(min=0)
     estimate = torch.full_like(data, 0.5)
-    for _ in range(iterations):
+    for iteration in range(1, iterations + 1):
         ratio = data / (blur(estimate, spectra) + RL_EPSILON)
         estimate = estimate * blur(ratio, spectra.conj())
+        yield iteration
     return estimate.clamp(min=0)  # FFT round-off can leave tiny negatives
 
 
@@ -279,14 +291,28 @@ class ShiftInvariantDeconvolution:
         sensor = torch.ones(system.sensor_shape, dtype=self.psfs.dtype, device=self.psfs.device)
         self.coverage = extract_sub_views(pad_sensor_frame(sensor, system), system)
 
+    @property
+    def steps(self) -> int:
+        """The steps :meth:`iter_solve` reports for a frame: RL's iterations; Wiener's 1."""
+        return 1 if self.method == "wiener" else self.iterations
+
     def deconvolve_views(self, views: torch.Tensor) -> torch.Tensor:
         """Deconvolve nine sub-views ``(..., 9, S, S)`` with their lenses' centre PSFs."""
+        return exhaust(self._iter_deconvolve(views))
+
+    def _iter_deconvolve(self, views: torch.Tensor) -> Generator[int, None, torch.Tensor]:
         psfs = self.psfs.expand(*views.shape[:-2], *self.psfs.shape[-2:])
         if self.method == "wiener":
             return wiener_deconvolve(views, psfs, self.balance, self.boundary)
-        return richardson_lucy_deconvolve(views, psfs, self.iterations)
+        return (yield from iter_richardson_lucy(views, psfs, self.iterations))
 
     def __call__(self, frame: torch.Tensor) -> torch.Tensor:
         """Reconstruct from a padded sensor frame ``(..., H_pad, W_pad)`` → ``(..., S, S)``."""
+        return exhaust(self.iter_solve(frame))
+
+    def iter_solve(self, frame: torch.Tensor) -> Generator[int, None, torch.Tensor]:
+        """Generator form of calling it: yields the RL iterations done after every one
+        (nothing for Wiener) and returns the reconstruction; closing it stops between them."""
         views = extract_sub_views(frame, self.operator.system)
-        return fuse_views(self.deconvolve_views(views), self.transmission, self.coverage)
+        deconvolved = yield from self._iter_deconvolve(views)
+        return fuse_views(deconvolved, self.transmission, self.coverage)

@@ -16,6 +16,7 @@ reconstruction re-imaged through the forward model (a model-based demixing).
 from __future__ import annotations
 
 import functools
+from collections.abc import Generator
 from typing import Any
 
 import numpy as np
@@ -30,6 +31,7 @@ from .. import registry
 from ..base import FrameByFrame, check_frame_shape, precision_dtype, resolve_device
 from ..frames import finite_frame
 from ..registry import MODEL_BASED_METHODS
+from ..tiling import exhaust
 from .admm import LsvAdmm, settings_for
 from .deconv import ShiftInvariantDeconvolution
 
@@ -156,6 +158,7 @@ class BaselineReconstructor(FrameByFrame):
                                   check_every=settings.check_every)  # fmt: skip
         else:
             self.solver = ShiftInvariantDeconvolution(operator, method, **options)
+        self.frame_steps = self.iterations if method == "admm" else self.solver.steps
 
     def _padded(self, frame: np.ndarray, index: int) -> torch.Tensor:
         values = finite_frame(frame, index, np.float64)
@@ -167,11 +170,19 @@ class BaselineReconstructor(FrameByFrame):
         self, frame: np.ndarray, x0: torch.Tensor | None = None, index: int = 0
     ) -> torch.Tensor:
         """One raw frame ``(H, W)`` → the reconstruction ``(S, S)`` as a tensor."""
+        return exhaust(self.iter_reconstruct_tensor(frame, x0, index))
+
+    def iter_reconstruct_tensor(
+        self, frame: np.ndarray, x0: torch.Tensor | None = None, index: int = 0
+    ) -> Generator[int, None, torch.Tensor]:
+        """Generator form of :meth:`reconstruct_tensor`: yields the iterations done after
+        every one (ADMM, RL; Wiener yields nothing) and returns the reconstruction."""
         check_frame_shape(np.shape(frame), self.system)
         padded = self._padded(frame, index)
         if self.method == "admm":
-            return self.solver.solve(padded, x0, self.iterations, self.tolerance).x
-        return self.solver(padded)
+            steps = self.solver.iter_solve(padded, x0, self.iterations, self.tolerance)
+            return (yield from steps).x
+        return (yield from self.solver.iter_solve(padded))
 
     def start_stack(self) -> None:
         """ADMM warm-starts every frame of a stack from the previous one, not across calls."""
@@ -181,7 +192,14 @@ class BaselineReconstructor(FrameByFrame):
         self, frame: np.ndarray, index: int, return_views: bool
     ) -> tuple[np.ndarray, np.ndarray | None]:
         """One raw frame → float32 reconstruction and, when asked, the re-imaged lens views."""
-        estimate = self.reconstruct_tensor(frame, self._previous, index)
+        return exhaust(self.iter_reconstruct_frame(frame, index, return_views))
+
+    def iter_reconstruct_frame(
+        self, frame: np.ndarray, index: int, return_views: bool
+    ) -> Generator[int, None, tuple[np.ndarray, np.ndarray | None]]:
+        """Generator form of :meth:`reconstruct_frame`, yielding the iterations done; a frame
+        stopped part way leaves the warm start of the next as it was."""
+        estimate = yield from self.iter_reconstruct_tensor(frame, self._previous, index)
         self._previous = estimate if self.method == "admm" else None
         views = None
         if return_views:
