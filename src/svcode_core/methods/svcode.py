@@ -170,9 +170,11 @@ class Reconstructor(BaseReconstructor):
         lattice (``ModelConfig.mask_spacing``, the bundled one) it keeps each tile's
         interpolated masks, read by every frame after the first: the default (1 GiB)
         holds the bundled ``cm2-mini`` model's whole-sub-view tile (614 MiB; about 1.4×
-        faster with them kept). Models with exact per-pixel masks keep their masks over
-        the whole sub-view (:meth:`SVCoDe.mask_field_bytes`, 640 MiB for a ``cm2-mini``
-        one; a smaller budget caches part of them, 256 MiB: about 4× slower).
+        faster with them kept). A budget smaller than every tile's masks
+        (:meth:`lattice_mask_bytes`; a cm2-v2 frame's 25 tiles need 33 GiB) keeps none.
+        Models with exact per-pixel masks keep their masks over the whole sub-view
+        (:meth:`SVCoDe.mask_field_bytes`, 640 MiB for a ``cm2-mini`` one; a smaller
+        budget caches part of them, 256 MiB: about 4× slower).
     tile_memory_bytes : int
         Working-memory budget of one batch of tiles for the default tiling.
     pool_window : int, optional
@@ -264,6 +266,10 @@ class Reconstructor(BaseReconstructor):
             raise ValueError(f"mask_cache_bytes must be a non-negative integer, "
                              f"got {mask_cache_bytes!r}")
         if hasattr(self.model, "cache_masks"):
+            if 0 < mask_cache_bytes < self.lattice_mask_bytes():
+                # the tiles' masks would evict each other (each frame runs them in turn),
+                # so a cache would be written and never read: masks are made per tile
+                mask_cache_bytes = 0
             self.model.cache_masks(enabled=mask_cache_bytes > 0, max_bytes=mask_cache_bytes)
         if (isinstance(refine_periphery, bool) or not isinstance(refine_periphery, int)
                 or refine_periphery < 0):
@@ -273,6 +279,31 @@ class Reconstructor(BaseReconstructor):
         self.refinement = None
         if refine_periphery > 0:
             self.refinement = PeripheryRefinement(system, refine_periphery, str(self.device))
+
+    def lattice_mask_bytes(self) -> int:
+        """Bytes of the interpolated masks of every tile of a frame, for a model whose masks
+        sit on a lattice (``ModelConfig.mask_spacing``); 0 for other models.
+
+        The mask cache keeps such a model's masks per tile, so it serves the next frame
+        only when it holds them all: with a smaller ``mask_cache_bytes`` the cache is off
+        (each tile's masks are interpolated where they are used and not kept).
+
+        Examples
+        --------
+        >>> from svcode_core.network import ModelConfig, SVCoDe
+        >>> system = SystemConfig.preset("cm2-mini")
+        >>> model = SVCoDe(ModelConfig.mini().replace(mask_spacing=8))
+        >>> round(Reconstructor(model, system).lattice_mask_bytes() / 2**20)  # one tile
+        614
+        """
+        config = getattr(self.model, "model_config", None)
+        if not getattr(config, "mask_spacing", 0) or not hasattr(self.model, "mask_field_bytes"):
+            return 0
+        step, size = self.model.stride, self.system.sub_view_size
+        cells = math.ceil((size + step - 1) / step) * step  # the side mask_field_bytes counts
+        side = math.ceil(self.grid.patch / step) * step  # a tile padded to the stride
+        field = self.model.mask_field_bytes(size, PRECISIONS[self.precision])
+        return len(self.grid) * field * side**2 // cells**2
 
     @classmethod
     def from_weights(

@@ -18,11 +18,14 @@ coordinate). Linear interpolation of ``sin(ω t)`` with node spacing ``Δ`` errs
 Two interpolation routes give the same values: for masks shared by the lenses, when the
 level stride ``2^k`` divides both ``p`` and every tile origin (the usual case: tile grids
 and training patches sit on multiples of the model stride), one bilinear up-sampling with
-aligned corners covers the tiles; otherwise two products with separable interpolation
-matrices do (columns, then rows), which write each tile's masks once, in the layout of the
-features they multiply (channels last, or channels first for the view block). The
-up-sampling kernel is the faster of the two for one lens and many channels, but slow for
-a batch of nine lenses of few channels (measured at paper scale: 4-8x the products).
+aligned corners covers the tiles; otherwise two passes of linear interpolation do
+(columns, then rows), each taking two node rows or columns per pixel, which write each
+tile's masks once, in the layout of the features they multiply (channels last, or
+channels first for the view block). The up-sampling kernel is the faster of the two for
+one lens and many channels, but slow for a batch of nine lenses of few channels.
+Interpolation runs in float32 under autocast as well: its work is two taps per axis, and
+a bfloat16 product on a processor without bfloat16 units is emulated (as a product with
+the node-to-pixel weight matrices it was 24x slower than in float32 on a paper-scale tile).
 
 Masks that are used once and not kept (inference without the mask cache, or beyond its
 budget) need not exist at full resolution: :func:`row_interpolants` interpolates them
@@ -166,21 +169,53 @@ def interpolate(
             up[t, :, :, r : r + h, c : c + w].contiguous(memory_format=torch.channels_last)
             for t, (r, c) in enumerate(zip(rows.crops, cols.crops, strict=True))
         ]
-    weights_r = _hat_matrix(rows.position, rows.nodes).to(masks.device, masks.dtype)  # (U, h, R)
     along_cols = _along_columns(masks, cols, channels_last)
-    if not channels_last:  # (U, lenses, C, R, w) -> (U, lenses, C, h, w)
-        return list(torch.matmul(weights_r[:, None, None], along_cols))
-    out = torch.matmul(weights_r[:, None], along_cols.flatten(3))  # (U, lenses, h, w·C)
-    return list(out.view(tiles, lenses, h, w, channels).permute(0, 1, 4, 2, 3))
+    row_dim = 2 if channels_last else 3  # (U, lenses, R, w, C) or (U, lenses, C, R, w)
+    out = _lerp_axis(along_cols, rows.position, row_dim, rows.nodes)
+    if not channels_last:
+        return list(out)
+    return list(out.permute(0, 1, 4, 2, 3))  # (U, lenses, C, h, w), channels-last strides
 
 
 def _along_columns(masks: torch.Tensor, cols: LatticeAxis, channels_last: bool) -> torch.Tensor:
     """Masks ``(U, lenses, C, R, S)`` at the nodes interpolated to the tile columns, in the
     features' memory order: ``(U, lenses, R, w, C)``, or ``(U, lenses, C, R, w)``."""
-    weights_c = _hat_matrix(cols.position, cols.nodes).to(masks.device, masks.dtype)  # (U, w, S)
     if channels_last:
-        return torch.matmul(weights_c[:, None, None], masks.permute(0, 1, 3, 4, 2))
-    return torch.matmul(masks, weights_c.transpose(1, 2)[:, None, None])
+        return _lerp_axis(masks.permute(0, 1, 3, 4, 2), cols.position, 3, cols.nodes)
+    return _lerp_axis(masks, cols.position, 4, cols.nodes)
+
+
+def _lerp_axis(t: torch.Tensor, position: torch.Tensor, dim: int, nodes: int) -> torch.Tensor:
+    """``t`` ``(U, lenses, ...)`` interpolated along ``dim`` from its ``nodes`` node values
+    to the ``(U, n)`` node coordinates ``position``: two taps and one lerp per value, in
+    ``t``'s dtype whatever autocast says (neither step is a product).
+
+    Examples
+    --------
+    >>> t = torch.tensor([[[0.0, 2.0, 6.0]]])
+    >>> _lerp_axis(t, torch.tensor([[0.0, 0.5, 1.5, 2.0]], dtype=torch.float64), 2, 3)
+    tensor([[[0., 1., 4., 6.]]])
+    """
+    below = _node_below(position, nodes)
+    weights = (position - below).to(t.device, t.dtype)
+    below = below.long().to(t.device)
+    if t.requires_grad and torch.is_grad_enabled():
+        shape = [-1 if d == dim - 1 else 1 for d in range(t.ndim - 1)]  # a tile's dims
+        return torch.stack([
+            torch.lerp(t[tile].index_select(dim - 1, index),
+                       t[tile].index_select(dim - 1, index + 1), weights[tile].view(shape))
+            for tile, index in enumerate(below)
+        ])
+    # written in place, one lens at a time: the only temporary is one lens's second tap
+    shape = [-1 if d == dim - 2 else 1 for d in range(t.ndim - 2)]  # a lens's dims
+    out = t.new_empty(*t.shape[:dim], position.shape[1], *t.shape[dim + 1 :])
+    for tile, index in enumerate(below):
+        weight = weights[tile].view(shape)
+        for lens, nodes_of_lens in enumerate(t[tile]):
+            target = out[tile, lens]
+            torch.index_select(nodes_of_lens, dim - 2, index, out=target)
+            target.lerp_(nodes_of_lens.index_select(dim - 2, index + 1), weight)
+    return out
 
 
 @dataclass(frozen=True)
@@ -303,16 +338,6 @@ def interpolate_once(
 def _node_below(position: torch.Tensor, nodes: int) -> torch.Tensor:
     """The node at or before each position (the last pixel counts as in the last gap)."""
     return position.floor().clamp(max=nodes - 2)
-
-
-def _hat_matrix(position: torch.Tensor, nodes: int) -> torch.Tensor:
-    """``(U, n, nodes)`` linear-interpolation weights (two per row) for ``position``."""
-    below = _node_below(position, nodes).long()
-    frac = position - below
-    weights = torch.zeros(*position.shape, nodes, dtype=torch.float64)
-    weights.scatter_(-1, below.unsqueeze(-1), (1 - frac).unsqueeze(-1))
-    weights.scatter_(-1, (below + 1).unsqueeze(-1), frac.unsqueeze(-1))
-    return weights
 
 
 def encoding_error_bound(
