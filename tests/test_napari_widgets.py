@@ -1277,3 +1277,38 @@ def test_lsv_admm_shows_its_iterations_and_a_cancel_keeps_the_frames_done(
         widget._state.pop("pace", None)
         assert widget._time_left(1.0) == ""
         assert widget._time_left(2.0) == ", about 4 s left"
+
+
+def test_calibration_undo_reset_and_the_offsets_of_moved_rays(tiny_system, make_napari_viewer,
+                                                              errors):
+    viewer = make_napari_viewer()
+    viewer.add_image(_raw_stack(tiny_system, 1)[0], name="raw",
+                     metadata={SYSTEM_KEY: tiny_system})
+    widget = _dock(viewer, CalibrationWidget)
+    widget.show_sub_views()
+    rays, pad = viewer.layers["chief rays"], np.asarray(tiny_system.padding)
+    assert widget._offsets.value == "no ray moved"
+    assert not widget._undo.enabled and not widget._reset.enabled
+
+    _drag(rays, 3, (1.0, -2.0))  # one drag, two moves: one step to undo
+    pixel = tiny_system.object_pixel_um
+    assert widget._offsets.value == (f"lens 3: (+1.0, \u22122.0) px, "
+                                     f"(+{pixel:.1f}, \u2212{2 * pixel:.1f}) µm")
+    assert widget._undo.enabled and widget._reset.enabled
+    widget._undo.clicked.emit()
+    assert widget.system.chief_rays == tiny_system.chief_rays
+    np.testing.assert_allclose(rays.data, np.asarray(tiny_system.chief_rays) - pad)
+    assert widget._offsets.value == "no ray moved" and not widget._undo.enabled
+
+    _drag(rays, 0, (2.0, 1.0))
+    _drag(rays, 8, (-1.0, 3.0))
+    assert widget._offsets.value.splitlines()[0].startswith("lens 0: (+2.0, +1.0) px")
+    assert widget._offsets.value.splitlines()[1].startswith("lens 8: (\u22121.0, +3.0) px")
+    widget.undo()  # one level: lens 8 back, lens 0 still moved
+    assert widget._offsets.value.startswith("lens 0:") and "lens 8" not in widget._offsets.value
+    _drag(rays, 8, (-1.0, 3.0))
+    widget._reset.clicked.emit()
+    assert widget.system.chief_rays == tiny_system.chief_rays
+    np.testing.assert_allclose(rays.data, np.asarray(tiny_system.chief_rays) - pad)
+    assert widget._offsets.value == "no ray moved" and not widget._reset.enabled
+    assert viewer.layers["raw"].metadata[SYSTEM_KEY] == tiny_system and not errors

@@ -94,7 +94,10 @@ class CalibrationWidget(Container):
     ray last clicked or moved), both placed like the raw layer. Applying a system with a
     pixel size puts the raw layer in object-space µm (scale, units, scale bar). Dragging a
     ray moves its box, dragging the box moves its ray; either updates the system, and
-    *Save* writes it to a ``system.json``.
+    *Save* writes it to a ``system.json``. *Undo* takes back the last move (one drag at a
+    time, several levels), *Reset* restores the chief rays of the system as drawn, and a
+    line below them gives each moved ray's offset from there (pixels, and µm when the
+    system has a pixel size).
 
     *Calibrate from a scan*: a scan (a layer or a TIFF file of ``N × H × W`` raw frames),
     its positions CSV (:func:`~svcode_core.physics.calibration.read_positions`: object
@@ -129,6 +132,11 @@ class CalibrationWidget(Container):
         self._lens = SpinBox(label="lens", min=0, max=8, value=4,
                              tooltip="the lens whose sub-view box is drawn (0–8, row by row); "
                                      "clicking a chief ray chooses it too")
+        self._undo = PushButton(text="Undo", enabled=False,
+                                tooltip="put the chief rays back as they were before the last move")
+        self._reset = PushButton(text="Reset", enabled=False,
+                                 tooltip="put every chief ray back where the system drawn has it")
+        self._offsets = Label(value="no ray moved")
         self._out = FileEdit(label="save to", mode="w", filter="*.json", value="system.json")
         self._save = PushButton(text="Save system.json")
         self._scan_title = Label(value="<b>Calibrate from a scan</b>")
@@ -182,7 +190,9 @@ class CalibrationWidget(Container):
                     f"layer: the mean of its first {REGISTRATION_FRAMES} frames, about "
                     "two minutes on cm2-mini")
         super().__init__(widgets=[
-            self._layer, self._system_choice, self._show, self._lens, self._out, self._save,
+            self._layer, self._system_choice, self._show, self._lens,
+            Container(layout="horizontal", labels=False, widgets=[self._undo, self._reset]),
+            self._offsets, self._out, self._save,
             self._scan_title, self._scan, self._positions, self._pixel_size, self._dark,
             self._tolerance,
             self._calibrate, self._cancel, self._progress, self._status, self._spot_frame,
@@ -192,6 +202,8 @@ class CalibrationWidget(Container):
         self._show.changed.connect(self.show_sub_views)
         self._save.changed.connect(self.save)
         self._lens.changed.connect(self._draw_box)
+        self._undo.changed.connect(self.undo)
+        self._reset.changed.connect(self.reset)
         self._calibrate.changed.connect(self.start_calibration)
         self._cancel.changed.connect(self.cancel)
         self._spot_frame.changed.connect(self._draw_spots)
@@ -207,6 +219,9 @@ class CalibrationWidget(Container):
         self.worker: FunctionWorker | None = None
         self._raw: napari.layers.Image | None = None
         self._updating = False
+        self._drawn_rays: tuple = ()  # the chief rays of the system as drawn
+        self._history: list[tuple] = []  # the chief rays before each move, for *Undo*
+        self._drag: Any = None  # the drag (its start) the last move belonged to
         self._run: dict[str, Any] = {}
 
     def show_sub_views(self) -> None:
@@ -278,6 +293,8 @@ class CalibrationWidget(Container):
         rays.selected_data.events.items_changed.connect(self._on_ray_selected)
         rays.mode = "select"
         layers.selection.active = rays
+        self._drawn_rays, self._history, self._drag = system.chief_rays, [], None
+        self._show_offsets()
 
     def _box(self, lens: int) -> np.ndarray:
         return sub_view_boxes(self.system)[lens]
@@ -300,14 +317,20 @@ class CalibrationWidget(Container):
         return np.asarray(self.system.chief_rays, dtype=float) - np.asarray(self.system.padding)
 
     # ---------------------------------------------------------------- editing
-    def _set_rays(self, rays: tuple, lens: int, redraw_rays: bool) -> None:
+    def _set_rays(self, rays: tuple, lens: int, redraw_rays: bool, drag: Any = None) -> None:
         """Apply moved chief rays and show lens ``lens``'s box; redraw the rays when they
-        were moved through the box, or were refused (a ray being dragged is left alone)."""
+        were moved through the box, or were refused (a ray being dragged is left alone).
+        The rays before are kept for *Undo*, once per ``drag`` (its start; ``None``: once)."""
+        before = self.system.chief_rays
         try:
             self._apply(self.system.replace(chief_rays=rays))
         except ConfigError as err:
             notify_error(err, "keep each chief ray inside the padded sensor frame")
             redraw_rays = True
+        else:
+            if rays != before and (drag is None or drag is not self._drag):
+                self._history.append(before)
+                self._drag = drag
         if redraw_rays:
             self._updating = True
             try:
@@ -318,6 +341,7 @@ class CalibrationWidget(Container):
             self._lens.value = lens  # draws the box
         else:
             self._draw_box()
+        self._show_offsets()
 
     def _on_rays_moved(self, event) -> None:
         if self._updating or event.action != "changed":
@@ -331,7 +355,8 @@ class CalibrationWidget(Container):
         lens = int(moved[0]) if len(moved) == 1 and moved[0] >= 0 else self._lens.value
         padding = np.asarray(self.system.padding)
         positions = np.rint(np.asarray(rays.data, dtype=float) + padding).astype(int)
-        self._set_rays(tuple((int(row), int(col)) for row, col in positions), lens, False)
+        self._set_rays(tuple((int(row), int(col)) for row, col in positions), lens, False,
+                       getattr(rays, "_drag_start", None))  # napari's mark of one drag
 
     def _on_box_moved(self, event) -> None:
         if self._updating or event.action != "changed":
@@ -345,6 +370,46 @@ class CalibrationWidget(Container):
         all_boxes = sub_view_boxes(self.system)
         all_boxes[lens] = boxes.data[0]
         self._set_rays(chief_rays_from_boxes(all_boxes, self.system), lens, True)
+
+    def undo(self) -> None:
+        """Put the chief rays back as they were before the last move."""
+        if self._history:
+            self._restore(self._history.pop())
+
+    def reset(self) -> None:
+        """Put every chief ray back where the system drawn has it (*Undo* takes it back)."""
+        if self.system is not None and self.system.chief_rays != self._drawn_rays:
+            self._history.append(self.system.chief_rays)
+            self._restore(self._drawn_rays)
+
+    def _restore(self, rays: tuple) -> None:
+        self._apply(self.system.replace(chief_rays=rays))
+        self._drag = None
+        if RAYS in self._viewer.layers:
+            self._updating = True
+            try:
+                self._viewer.layers[RAYS].data = self._ray_positions()
+            finally:
+                self._updating = False
+        self._draw_box()
+        self._show_offsets()
+
+    def _show_offsets(self) -> None:
+        """Each moved ray's offset from the system drawn, in pixels (and µm)."""
+        def pair(offset: np.ndarray, unit: str) -> str:
+            return f"({offset[0]:+.1f}, {offset[1]:+.1f}) {unit}".replace("-", "−")
+
+        lines = []
+        current = self.system.chief_rays if self.system is not None else ()
+        pixel = self.system.object_pixel_um if self.system is not None else None
+        for lens, (now, drawn) in enumerate(zip(current, self._drawn_rays, strict=False)):
+            offset = np.subtract(now, drawn, dtype=float)
+            if offset.any():
+                text = f"lens {lens}: {pair(offset, 'px')}"
+                lines.append(text + (f", {pair(offset * pixel, 'µm')}" if pixel else ""))
+        self._offsets.value = "\n".join(lines) or "no ray moved"
+        self._undo.enabled = bool(self._history)
+        self._reset.enabled = bool(lines)
 
     def _on_ray_selected(self, *_: Any) -> None:
         selected = self._viewer.layers[RAYS].selected_data
