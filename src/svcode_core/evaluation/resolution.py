@@ -6,8 +6,8 @@ each field position of :data:`POSITIONS`, a group of three vertical bars and a g
 three horizontal bars of one period (one line pair: a bar and a gap of half a period each,
 rendered with exact pixel coverage, each group starting on a whole pixel). A group is
 *resolved* when the reconstruction's profile across its bars dips between neighbouring
-bars by at least :data:`RAYLEIGH_DIP` of the bars' level (the dip between two points at the Rayleigh distance), in both orientations.
-:func:`finest_resolved` gives, per position, the smallest period resolved, with every
+bars by at least :data:`RAYLEIGH_DIP` of the bars' level (the dip between two points at
+the Rayleigh distance), in both orientations. :func:`finest_resolved` gives, per position, the smallest period resolved, with every
 coarser one resolved too.
 """
 
