@@ -7,8 +7,8 @@ three horizontal bars of one period (one line pair: a bar and a gap of half a pe
 rendered with exact pixel coverage, each group starting on a whole pixel). A group is
 *resolved* when the reconstruction's profile across its bars dips between neighbouring
 bars by at least :data:`RAYLEIGH_DIP` of the bars' level (the dip between two points at
-the Rayleigh distance), in both orientations. :func:`finest_resolved` gives, per position, the smallest period resolved, with every
-coarser one resolved too.
+the Rayleigh distance), in both orientations. :func:`finest_resolved` gives, per
+position, the smallest period resolved, with every coarser one resolved too.
 """
 
 from __future__ import annotations
