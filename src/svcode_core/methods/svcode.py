@@ -311,10 +311,10 @@ class Reconstructor(BaseReconstructor):
     ) -> Reconstructor:
         """Load a trained model (and its system, unless given) and wrap it.
 
-        ``system`` may differ from the model's training system in its chief rays only
-        (:data:`~svcode_core.methods.model_file.FREE_FIELDS`): the sub-views are then
-        cut at its rays. ``options`` are those of the constructor (``device``,
-        ``precision`` ...).
+        ``system`` may differ from the model's training system only in the fields a network
+        does not see (:data:`~svcode_core.methods.model_file.FREE_FIELDS`: chief rays,
+        measured PSFs, pixel sizes): the sub-views are then cut at its rays. ``options``
+        are those of the constructor (``device``, ``precision`` ...).
         """
         from .model_file import load_model
 

@@ -118,12 +118,10 @@ class _NoisySamples(torch.utils.data.Dataset):
     def sensor(self, frame: int, generator: torch.Generator) -> SensorModel:
         """Frame ``frame``'s camera, at a photon level drawn from ``photon_range``."""
         low, high = self.photon_range
-        factor = 1.0
+        factor = low  # a range of one value draws nothing (the noise stream stays as it was)
         if high > low:
             u = float(torch.rand((), generator=generator))
             factor = math.exp(math.log(low) + u * (math.log(high) - math.log(low)))
-        elif low != 1.0:
-            factor = low
         return self.data.frame_sensor(frame, factor)
 
     def gain(self, frame: int) -> float:
