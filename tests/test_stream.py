@@ -11,6 +11,7 @@ import tifffile
 import torch
 
 from svcode_core.io import read_tiff, write_tiff
+from svcode_core.methods.exposure import exposure_gain
 from svcode_core.methods.svcode import Reconstructor
 from svcode_core.run.stream import FrameReader, reconstruct_file
 
@@ -80,7 +81,18 @@ def test_stack_streams_and_matches_frame_by_frame(tiny_system, stack, tmp_path):
     assert system == tiny_system
     assert meta["kind"] == "reconstruction" and meta["method"] == "test"
     assert views_meta["kind"] == "views"
+    # each frame's exposure gain, as float32 stores it, in both outputs' metadata
+    gains = np.float32([exposure_gain(frame) for frame in stack]).tolist()
+    assert meta["exposure_gains"] == views_meta["exposure_gains"] == gains
     assert _leftovers(tmp_path) == []
+
+
+def test_a_method_that_does_not_normalise_records_no_gains(tiny_system, stack, tmp_path):
+    from svcode_core.methods.baselines.reconstructor import BaselineReconstructor
+
+    reconstruct_file(tmp_path / "meas.tif", tmp_path / "out.tif",
+                     lambda: BaselineReconstructor("wiener", tiny_system), progress=False)
+    assert "exposure_gains" not in read_tiff(tmp_path / "out.tif")[2]
 
 
 def test_single_frame_gives_one_image(tiny_system, stack, tmp_path):

@@ -28,6 +28,7 @@ from .config import SystemConfig
 from .outputs import temporary_sibling
 
 __all__ = [
+    "add_tiff_metadata",
     "atomic_path",
     "read_tiff",
     "resolution_tags",
@@ -273,6 +274,28 @@ def tiff_metadata(tif: tifffile.TiffFile) -> tuple[SystemConfig | None, dict[str
     if system_dict:
         return SystemConfig.from_dict(system_dict), meta
     return system_beside(tif.filehandle.path), meta
+
+
+def add_tiff_metadata(path: str | Path, **fields: Any) -> None:
+    """Add ``fields`` to the ``svcode`` metadata of a TIFF this package wrote, in place.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> path = Path(tempfile.mkdtemp()) / "image.tif"
+    >>> _ = write_tiff(path, np.zeros((4, 4)), None, kind="reconstruction")
+    >>> add_tiff_metadata(path, exposure_gains=[2.0])
+    >>> read_tiff(path)[2]
+    {'kind': 'reconstruction', 'exposure_gains': [2.0]}
+    """
+    with tifffile.TiffFile(path, mode="r+b") as tif:
+        tags = tif.pages[0].tags
+        tag = tags.get(OME_METADATA_TAG) if tif.is_ome else tags.get("ImageDescription")
+        document = json.loads(tag.value) if tag is not None else {}
+        if not isinstance(document, dict) or METADATA_KEY not in document:
+            raise ValueError(f"{Path(path).name} holds no svcode metadata to add to")
+        document[METADATA_KEY].update(fields)
+        tag.overwrite(json.dumps(document))
 
 
 def write_json_atomic(path: str | Path, data: Any) -> Path:

@@ -46,16 +46,20 @@ from ..methods.base import BaseReconstructor
 
 __all__ = ["dask_client", "dask_frames", "local_frames"]
 
-#: ``(index, reconstruction, views or None, counters)``
-FrameResult = tuple[int, np.ndarray, "np.ndarray | None", dict[str, int]]
+#: ``(index, reconstruction, views or None, counters)``: the counters are the frame's
+#: tiles (``tiles_run``, ``tiles_skipped``, ``tiles_total``) and its ``exposure_gain``
+#: (``None`` for a method that does not normalise)
+FrameResult = tuple[int, np.ndarray, "np.ndarray | None", dict[str, Any]]
 Factory = Callable[[], BaseReconstructor]
 
 
-def _counters(result: Any) -> dict[str, int]:
+def _counters(result: Any) -> dict[str, Any]:
+    gains = result.exposure_gains
     return {
         "tiles_run": result.tiles_run,
         "tiles_skipped": result.tiles_skipped,
         "tiles_total": result.tiles_total,
+        "exposure_gain": None if gains is None else float(np.ravel(gains)[0]),
     }
 
 
@@ -136,7 +140,7 @@ _WORKER_LOCK = threading.Lock()
 
 def _reconstruct_on_worker(
     token: str, factory: Factory, frame: np.ndarray, return_views: bool
-) -> tuple[np.ndarray, np.ndarray | None, dict[str, int]]:
+) -> tuple[np.ndarray, np.ndarray | None, dict[str, Any]]:
     """Dask task: reconstruct one frame with this worker's cached reconstructor."""
     with _WORKER_LOCK:
         reconstructor = _WORKER_CACHE.get(token)

@@ -7,14 +7,17 @@ Output and resume scheme
     The result is written as it goes into ``OUT.tif.partial``, an uncompressed TIFF created
     at its final size, with its disk blocks reserved, and memory-mapped (likewise
     ``VIEWS.tif.partial``). After a frame is written and flushed, its byte in
-    ``OUT.tif.done.npy`` is set and flushed. The run's settings (input file, size and
+    ``OUT.tif.done.npy`` is set and flushed (and, for a learned method, its exposure gain
+    stored in ``OUT.tif.gains.npy``). The run's settings (input file, size and
     modification time, system, method, options) are in ``OUT.tif.resume.json``, written
     atomically once the partial files exist. A rerun with the same settings reopens the
     partial files and computes only the frames not marked done; every frame has its own
     slot, so a frame interrupted between its write and its mark is simply written again
     into the same slot: nothing is lost or duplicated. When every frame is done, the
     partial files are renamed to their final names and the bookkeeping files removed. A
-    rerun with different settings starts afresh.
+    rerun with different settings starts afresh. A learned method's gains go into the
+    outputs' metadata (``exposure_gains``, one per frame: each frame was multiplied by its
+    gain before the network and the output divided by it).
 
 Safety
     Before anything is computed, the outputs are checked (none may be an input or another
@@ -49,7 +52,13 @@ import tifffile
 from tqdm import tqdm
 
 from ..config import N_LENSES, SystemConfig
-from ..io import METADATA_KEY, resolution_tags, tiff_metadata, write_json_atomic
+from ..io import (
+    METADATA_KEY,
+    add_tiff_metadata,
+    resolution_tags,
+    tiff_metadata,
+    write_json_atomic,
+)
 from ..methods.base import check_frame_shape
 from ..methods.frames import finite_frame, require_frames
 from ..outputs import NoSpaceError, OutputLock, check_outputs, no_space, preallocate, require_space
@@ -187,7 +196,7 @@ class _CheckedFrames:
 def _written_files(out: Path, views: Path | None) -> dict[str, Path | None]:
     """Every file a run onto ``out`` (and ``views``) writes, by label."""
     files: dict[str, Path | None] = {"output": out, "views output": views}
-    for suffix in (".partial", ".done.npy", ".resume.json", ".lock"):
+    for suffix in (".partial", ".done.npy", ".gains.npy", ".resume.json", ".lock"):
         files[f"output's {suffix} file"] = _sibling(out, suffix)
     if views is not None:
         files["views' .partial file"] = _sibling(views, ".partial")
@@ -212,6 +221,7 @@ class _ResumableOutput:
         self.frames, self.size = frames, system.sub_view_size
         self.state_path = _sibling(out, ".resume.json")
         self.done_path = _sibling(out, ".done.npy")
+        self.gains_path = _sibling(out, ".gains.npy")
         lead = (frames,) if stacked else ()
         self.shapes = {
             "reconstruction": (*lead, self.size, self.size),
@@ -244,18 +254,19 @@ class _ResumableOutput:
             return False
         try:
             done = np.load(self.done_path, mmap_mode="r+")
+            gains = np.load(self.gains_path, mmap_mode="r+")
             arrays = {
                 kind: tifffile.memmap(self._partial(kind), mode="r+") for kind in self._kinds()
             }
         except (OSError, ValueError):
             return False
-        if done.shape != (self.frames,) or any(
+        if (done.shape, gains.shape) != ((self.frames,),) * 2 or any(
             arrays[kind].shape != self.shapes[kind] for kind in arrays
         ):
             return False
-        for path in (*map(self._partial, self._kinds()), self.done_path):
+        for path in (*map(self._partial, self._kinds()), self.done_path, self.gains_path):
             preallocate(path)  # already reserved, unless written by an older version
-        self.done, self.arrays = done, arrays
+        self.done, self.gains, self.arrays = done, gains, arrays
         return True
 
     def _needs(self) -> dict[Path, int]:
@@ -267,11 +278,11 @@ class _ResumableOutput:
             size = 4 * int(np.prod(self.shapes[kind])) + _HEADROOM
             needs[folder] = needs.get(folder, 0) + size
         folder = self.done_path.parent
-        needs[folder] = needs.get(folder, 0) + self.frames + 2 * _HEADROOM
+        needs[folder] = needs.get(folder, 0) + 5 * self.frames + 3 * _HEADROOM
         return needs
 
     def _create(self) -> None:
-        for path in (self.state_path, self.done_path):
+        for path in (self.state_path, self.done_path, self.gains_path):
             path.unlink(missing_ok=True)
         needs = self._needs()
         require_space(needs)
@@ -293,30 +304,41 @@ class _ResumableOutput:
         self.done = np.lib.format.open_memmap(
             self.done_path, mode="w+", dtype=np.uint8, shape=(self.frames,)
         )
-        self.done.flush()
-        preallocate(self.done_path)
+        self.gains = np.lib.format.open_memmap(
+            self.gains_path, mode="w+", dtype=np.float32, shape=(self.frames,)
+        )
+        self.gains[:] = np.nan  # no gain: a method that does not normalise
+        for array, path in ((self.done, self.done_path), (self.gains, self.gains_path)):
+            array.flush()
+            preallocate(path)
         write_json_atomic(self.state_path, self.fingerprint)
 
     def pending(self) -> list[int]:
         """Frames not yet written, in order."""
         return np.flatnonzero(self.done == 0).tolist()
 
-    def write(self, index: int, reconstruction: np.ndarray, views: np.ndarray | None) -> None:
-        """Store one frame, flush it, then mark it done."""
+    def write(self, index: int, reconstruction: np.ndarray, views: np.ndarray | None,
+              gain: float | None = None) -> None:  # fmt: skip
+        """Store one frame (and its exposure gain), flush it, then mark it done."""
         for kind, data in (("reconstruction", reconstruction), ("views", views)):
             if kind in self.arrays:
                 array = self.arrays[kind]
                 array[index if array.ndim > data.ndim else ...] = data
                 array.flush()
+        if gain is not None:
+            self.gains[index] = gain
+            self.gains.flush()
         self.done[index] = 1
         self.done.flush()
 
     def discard(self) -> None:
         """Remove the partial files and the bookkeeping (after a failed run)."""
         self.arrays.clear()
-        with contextlib.suppress(AttributeError):
-            del self.done
-        for path in (*map(self._partial, self._kinds()), self.done_path, self.state_path):
+        for name in ("done", "gains"):
+            with contextlib.suppress(AttributeError):
+                delattr(self, name)
+        bookkeeping = (self.done_path, self.gains_path, self.state_path)
+        for path in (*map(self._partial, self._kinds()), *bookkeeping):
             path.unlink(missing_ok=True)
 
     def finish(self) -> None:
@@ -324,11 +346,14 @@ class _ResumableOutput:
         if not self.done.all():
             raise RuntimeError(f"{len(self.pending())} frames are still missing")
         self.arrays.clear()
+        gains = np.array(self.gains)
+        del self.done, self.gains
         for kind in self._kinds():
+            if not np.isnan(gains).all():
+                add_tiff_metadata(self._partial(kind), exposure_gains=gains.tolist())
             os.replace(self._partial(kind), self.targets[kind])
-        del self.done
-        self.done_path.unlink()
-        self.state_path.unlink()
+        for path in (self.done_path, self.gains_path, self.state_path):
+            path.unlink()
 
 
 def _fingerprint(
@@ -474,7 +499,7 @@ def _run(
     backend = _frame_results(factory, frames, todo, views, workers, scheduler)
     with bar, backend as results:
         for index, recon, demixed, counters in results:
-            output.write(index, recon, demixed)
+            output.write(index, recon, demixed, counters["exposure_gain"])
             summary.computed += 1
             summary.tiles_run += counters["tiles_run"]
             summary.tiles_skipped += counters["tiles_skipped"]

@@ -94,12 +94,15 @@ class LearnedReconstructor(FrameByFrame):
         model, trained = load_model(path, system=system, device=options.get("device", "cpu"))
         return cls(model, trained if system is None else system, **options)
 
+    def exposure_gain(self, frame: np.ndarray) -> float | None:
+        return exposure_gain(frame) if self.normalise_exposure else None
+
     def reconstruct_frame(
         self, frame: np.ndarray, index: int, return_views: bool
     ) -> tuple[np.ndarray, None]:
         """One raw frame → its float32 reconstruction (these methods do not demix)."""
         values = finite_frame(frame, index)
-        gain = exposure_gain(np.maximum(values, 0.0)) if self.normalise_exposure else 1.0
+        gain = self.exposure_gain(np.maximum(values, 0.0)) or 1.0
         padded = pad_sensor_frame(torch.from_numpy(values * np.float32(gain)).to(self.device),
                                   self.system)
         bf16 = self.precision == "bf16"
