@@ -1,4 +1,7 @@
-"""The network's fast paths against a plain transcription of the paper's formulas.
+"""The network's two routes against a plain transcription of the paper's formulas, and
+against each other: the plain route (``PlainMasks``: each gate applies ``M ⊙ conv`` as
+written in ``network/models.py``) and the fast one (``FastMasks``: folded, cached,
+lattice-interpolated masks, ``network/fast.py``).
 
 The reference here is written from the formulas and a state dict alone, in float64:
 
@@ -13,7 +16,7 @@ The reference here is written from the formulas and a state dict alone, in float
 
 With ``mask_spacing = p`` the masks are evaluated on the documented lattice (nodes at
 level-0 positions ``j p + (2^k - 1)/2``) and interpolated bilinearly in ``u = (o + 2^k i)/p``;
-as documented (:class:`~svcode_core.network.blocks.CoDeBlock`) the interpolated masks of
+as documented (:class:`~svcode_core.network.masks.PlainMasks`) the interpolated masks of
 conv2 and conv4 are the products of their halves, applied after the SimpleGate. The
 reference follows that definition rather than comparing with exact per-pixel masks: the
 difference between the two is the lattice approximation (``encoding_error_bound`` times the
@@ -234,7 +237,8 @@ LATTICE = SMALL.replace(mask_spacing=8, pe_scheme="code", lens_context=True)
 # tiles cropped from the cached field); unaligned: neither, one tile partly outside the
 # sub-view, one origin twice (tiles sharing one mask computation)
 ORIGINS = {"aligned": [[16, 8], [0, 32]], "unaligned": [[13, 21], [40, -6], [13, 21]]}
-PATHS = ["uncached", "cached", "banded", "autograd"]
+FAST_PATHS = ["uncached", "cached", "banded", "autograd"]
+PATHS = ["plain", *FAST_PATHS]
 #: A CoDe block: ~12 float32 stages in sequence (LN, five convolutions, gate, attention,
 #: masks, two residuals), each within ~sqrt(K) u of its operands' scale for a sum of K terms
 #: (rounding errors of random sign); the longest sums are the attention's tile means, K =
@@ -244,6 +248,17 @@ BLOCK_ULPS = 256
 #: 24 * 32 pixels (~170 ulp a block as above); independent stage errors add in quadrature:
 #: sqrt(28) * 170 ~ 900 ulp of the output scale.
 MODEL_ULPS = 1024
+#: Fast against plain route, in ulps of the plain output's scale. Both routes run the same
+#: float32 operations except where a block applies its masks, in five places: M₁⊙y, the
+#: conv2 and conv4 pairs ((Ma⊙a)⊙(Mb⊙b) against (a⊙b)⊙(Ma⊙Mb)) and the two residual
+#: branches (x + β⊙(M⊙z) against x + (β⊙M)⊙z). There each route reaches the value from the
+#: same operands (features, the MLPs' masks at the pixels or nodes, β, γ) in at most ten
+#: roundings: a fold or β product, on a lattice the bilinear interpolation's two lerps
+#: (three each), the products and the sum. So at each place the routes are within
+#: 2 x 10 u = 10 ulp of each other, and the shared operations after it pass that on as they
+#: pass on their own roundings (x2 for the layer norms, as for BLOCK_ULPS):
+#: 5 places x 10 ulp x 2 = 100 ulp of a block's output scale.
+ROUTES_BLOCK_ULPS = 100
 
 
 def _model(config: ModelConfig, seed: int = 0) -> SVCoDe:
@@ -258,16 +273,22 @@ def _model(config: ModelConfig, seed: int = 0) -> SVCoDe:
 
 @contextlib.contextmanager
 def _on_path(model: SVCoDe, path: str, monkeypatch):
-    """Run ``model`` on ``path``: inference without or with the mask cache, lattice masks
-    finished band by band where they are applied (``RowInterpolant``: small tiles take it
-    only under a small band budget), or with autograd (training's products)."""
+    """Run ``model`` on ``path``: the plain route, or the fast one for inference without or
+    with the mask cache, lattice masks finished band by band where they are applied
+    (``RowInterpolant``: small tiles take it only under a small band budget), or with
+    autograd (training's products)."""
     calls = []
     if path == "banded":
         monkeypatch.setattr(lattice, "BAND_BYTES", 256)
         route = lattice.row_interpolants
         monkeypatch.setattr(lattice, "row_interpolants",
                             lambda *a, **k: calls.append(1) or route(*a, **k))  # fmt: skip
-    with torch.set_grad_enabled(path == "autograd"), model.cache_masks(path == "cached"):
+    with (
+        monkeypatch.context() as patch,
+        torch.set_grad_enabled(path == "autograd"),
+        model.cache_masks(path == "cached"),
+    ):
+        patch.setattr(model, "fast_masks", path != "plain")
         yield
     if path == "banded" and model.model_config.mask_spacing:
         assert calls, "the banded route was not taken"
@@ -281,19 +302,21 @@ def _ulps(out: torch.Tensor, ref: torch.Tensor) -> float:
 @pytest.mark.parametrize("block, level", [("demix.view_block", 0),
                                           ("demix.unet.encoders.1.0", 1)])  # fmt: skip
 @pytest.mark.parametrize("layer", ["conv1", "conv2"])
-def test_gated_convolution(block, level, layer):
+def test_gated_convolution(block, level, layer, monkeypatch):
     """``CoordGate.forward`` equals ``M(r) ⊙ conv`` with the MLP evaluated at each pixel's
     global coordinate, within a per-element float32 forward-error bound."""
     model = _model(SMALL)
     gate = model.get_submodule(f"{block}.{layer}")
     origins, shape = ORIGINS["unaligned"], (16, 12)
-    grid = model._grids(torch.tensor(origins), S, shape, 2)[level]
+    monkeypatch.setattr(model, "fast_masks", False)
+    masks = model.masks_for(torch.tensor(origins), S, shape)
+    mask = masks(model.get_submodule(block), level)[int(layer[-1]) - 1]
     views = LENSES if "view" in block else 1
     cin, groups = gate.conv.in_channels, gate.conv.groups
     torch.manual_seed(1)
     x = torch.randn(len(origins) * views, cin, shape[0] >> level, shape[1] >> level)
     with torch.no_grad():
-        out = gate(x, grid)
+        out = gate(x, mask)
     P, x64, name = state64(model), x.to(F64), f"{block}.{layer}"
     y = conv(x64, P, f"{name}.conv", groups)
     # the convolution: Higham's bound over its K = cin/groups · k² products and the bias
@@ -319,8 +342,8 @@ def test_gated_convolution(block, level, layer):
 @pytest.mark.parametrize("origins", ORIGINS.values(), ids=ORIGINS.keys())
 @pytest.mark.parametrize("config", [SMALL, LATTICE], ids=["exact", "lattice"])
 def test_code_block(config, origins, path, monkeypatch):
-    """A CoDe block on the model's paths (folded masks; exact or lattice) equals the block
-    formula, for the view block (nine lenses, channels first) and a level-1 U-Net block
+    """A CoDe block on the model's paths (plain or folded masks; exact or lattice) equals the
+    block formula, for the view block (nine lenses, channels first) and a level-1 U-Net block
     (channels last); a cached block twice (masks computed, then read)."""
     model = _model(config)
     P, shape = state64(model), (16, 24)
@@ -335,8 +358,8 @@ def test_code_block(config, origins, path, monkeypatch):
         ref = code_block(P, name, x.to(F64), [torch.stack(m) for m in zip(*per_tile, strict=True)])
         with _on_path(model, path, monkeypatch):
             for _ in range(2 if path == "cached" else 1):
-                grid = model._grids(torch.tensor(origins), S, shape, 2)[level]
-                assert _ulps(block(x, grid), ref) <= BLOCK_ULPS, name
+                masks = model.masks_for(torch.tensor(origins), S, shape)
+                assert _ulps(block(x, masks(block, level)), ref) <= BLOCK_ULPS, name
 
 
 @pytest.mark.parametrize("path", PATHS)
@@ -376,3 +399,64 @@ def test_svcode_trained_weights(trained, origins, path, monkeypatch):
     for o, r in zip(out, ref, strict=True):
         assert (r > 0).any()  # not a tile clamped to zero
         assert _ulps(o, r) <= MODEL_ULPS
+
+
+def _blocks(model: SVCoDe) -> int:
+    return sum(len(stage.named_blocks()) for stage in (model.demix, model.recon))
+
+
+@pytest.mark.parametrize("path", FAST_PATHS)
+@pytest.mark.parametrize("origins", ORIGINS.values(), ids=ORIGINS.keys())
+@pytest.mark.parametrize("config", [SMALL, LATTICE], ids=["exact", "lattice"])
+def test_fast_block_equals_plain_block(config, origins, path, monkeypatch):
+    """A CoDe block on each fast path equals the same block on the plain route."""
+    model = _model(config)
+    shape, tiles = (16, 24), torch.tensor(origins)
+    torch.manual_seed(2)
+    for name, level in (("demix.view_block", 0), ("demix.unet.encoders.1.0", 1)):
+        block = model.get_submodule(name)
+        c, views = block.beta.shape[1], LENSES if "view" in name else 1
+        x = torch.randn(len(origins) * views, c, shape[0] >> level, shape[1] >> level)
+        if views == 1:  # as the U-Net runs
+            x = x.contiguous(memory_format=torch.channels_last)
+        with _on_path(model, "plain", monkeypatch):
+            plain = block(x, model.masks_for(tiles, S, shape)(block, level))
+        with _on_path(model, path, monkeypatch):
+            for _ in range(2 if path == "cached" else 1):
+                fast = block(x, model.masks_for(tiles, S, shape)(block, level))
+                assert _ulps(fast, plain.to(F64)) <= ROUTES_BLOCK_ULPS, name
+
+
+@pytest.mark.parametrize("path", FAST_PATHS)
+@pytest.mark.parametrize("origins", ORIGINS.values(), ids=ORIGINS.keys())
+@pytest.mark.parametrize("config", [SMALL, LATTICE], ids=["exact", "lattice"])
+def test_fast_model_equals_plain_model_random_weights(config, origins, path, monkeypatch):
+    """The whole model on each fast path equals it on the plain route: the blocks'
+    differences, of random sign, add in quadrature (sqrt(blocks) x ROUTES_BLOCK_ULPS)."""
+    model = _model(config)
+    torch.manual_seed(3)
+    views = torch.rand(len(origins), LENSES * config.views_per_lens, 13, 22)
+    with _on_path(model, "plain", monkeypatch):
+        plain = model(views, origins, S)
+    with _on_path(model, path, monkeypatch):
+        fast = model(views, origins, S)
+    for f, p in zip(fast, plain, strict=True):
+        assert _ulps(f, p.to(F64)) <= math.sqrt(_blocks(model)) * ROUTES_BLOCK_ULPS
+
+
+@pytest.mark.parametrize("path", FAST_PATHS)
+@pytest.mark.parametrize("origins", [[[96, 200]], [[101, 43], [250, 7]]],
+                         ids=["aligned", "unaligned"])  # fmt: skip
+def test_fast_model_equals_plain_model_trained_weights(trained, origins, path, monkeypatch):
+    """The bundled cm2-mini model on each fast path equals it on the plain route."""
+    model, system = trained
+    config, size = model.model_config, system.sub_view_size
+    torch.manual_seed(4)
+    views = torch.rand(len(origins), LENSES * config.views_per_lens, 44, 60)
+    with _on_path(model, "plain", monkeypatch):
+        plain = model(views, origins, size)
+    with _on_path(model, path, monkeypatch):
+        fast = model(views, origins, size)
+    for f, p in zip(fast, plain, strict=True):
+        assert (p > 0).any()
+        assert _ulps(f, p.to(F64)) <= math.sqrt(_blocks(model)) * ROUTES_BLOCK_ULPS

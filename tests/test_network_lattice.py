@@ -10,6 +10,7 @@ import torch.nn.functional as F
 
 from svcode_core.network import ModelConfig, SVCoDe, lattice
 from svcode_core.network.encoding import positional_encoding
+from svcode_core.network.fast import fold
 from svcode_core.network.lattice import (
     LatticeAxis,
     encoding_error_bound,
@@ -127,11 +128,11 @@ def test_lattice_masks_depend_only_on_the_global_position():
     not move with the tile), on both interpolation routes."""
     model = _model(TINY)
     block = model.demix.unet.encoders[1][0]
-    whole = model._grids(torch.tensor([[0, 0]]), S, (S, S), 2)[1]
-    (reference,) = whole.tile_masks(block.folded_masks(whole.enc_row, whole.enc_col))
+    whole = model.masks_for(torch.tensor([[0, 0]]), S, (S, S)).grids[1]
+    (reference,) = whole.tile_masks(fold(block, whole.enc_row, whole.enc_col))
     for origin in ([16, 32], [18, 6], [3, 5]):
-        grid = model._grids(torch.tensor([origin]), S, (32, 32), 2)[1]
-        (masks,) = grid.tile_masks(block.folded_masks(grid.enc_row, grid.enc_col))
+        grid = model.masks_for(torch.tensor([origin]), S, (32, 32)).grids[1]
+        (masks,) = grid.tile_masks(fold(block, grid.enc_row, grid.enc_col))
         r, c = origin[0] // 2, origin[1] // 2
         for tile, full in zip(masks, reference, strict=True):
             if origin[0] % 2 == 0 and origin[1] % 2 == 0:  # on the level-1 pixel grid

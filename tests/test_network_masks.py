@@ -7,6 +7,7 @@ import torch
 
 from svcode_core.network import DemixNet, SVCoDe
 from svcode_core.network.encoding import level_coordinates, positional_encoding
+from svcode_core.network.fast import fold
 
 
 @pytest.fixture
@@ -61,12 +62,13 @@ def test_tile_cropped_from_the_field_equals_the_tile_masks(model, two_level_mode
         entries = _entries(model)
         for stage in (model.demix, model.recon):
             for name, block, level in stage.named_blocks():
-                field = entries[(block.cache_name, (size, level, 52 // 2**level), torch.float32)][0]
+                key = (f"{stage.stage}/{name}", (size, level, 52 // 2**level), torch.float32)
+                field = entries[key][0]
                 step, n = 2**level, tile // 2**level
                 rows = level_coordinates(torch.tensor([origin[0]]), tile, size, level)[level]
                 cols = level_coordinates(torch.tensor([origin[1]]), tile, size, level)[level]
                 enc = [positional_encoding(t, *encoding) for t in (rows, cols)]
-                expected = [m[0] for m in block.folded_masks(*enc)]
+                expected = [m[0] for m in fold(block, *enc)]
                 r, c = origin[0] // step, origin[1] // step
                 for part, want in zip(field, expected, strict=True):
                     assert _close(part[..., r : r + n, c : c + n], want), (name, level)

@@ -1,4 +1,5 @@
-"""Building blocks: LayerNorm2d, SimpleGate, channel attention, the CoDe block, view fusion."""
+"""NAFNet's parts around the gated convolutions: LayerNorm2d, SimpleGate, channel attention,
+and the view fusion of the SV-CoDe stages (:mod:`.models` assembles them)."""
 
 from __future__ import annotations
 
@@ -6,11 +7,15 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .coordgate import CoordGate, CoordGrid, tile_masks
-from .lattice import RowInterpolant
-
-__all__ = ["CoDeBlock", "LayerNorm2d", "SimpleChannelAttention", "SimpleGate", "ViewFusion",
-           "pooled_mean", "spread"]
+__all__ = [
+    "LayerNorm2d",
+    "SimpleChannelAttention",
+    "SimpleGate",
+    "ViewFusion",
+    "is_channels_last",
+    "pooled_mean",
+    "spread",
+]
 
 
 class LayerNorm2d(nn.Module):
@@ -29,7 +34,7 @@ class LayerNorm2d(nn.Module):
         self.eps = eps
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if _is_channels_last(x):
+        if is_channels_last(x):
             pixels = x.permute(0, 2, 3, 1)  # (B, h, w, C)
             normed = F.layer_norm(pixels, (x.shape[1],), self.weight, self.bias, self.eps)
             return normed.permute(0, 3, 1, 2)
@@ -138,186 +143,9 @@ def spread(weights: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     return F.interpolate(weights, size=x.shape[-2:], mode="bilinear", align_corners=False)
 
 
-class CoDeBlock(nn.Module):
-    """A NAFNet block in which every convolution is a :class:`CoordGate`.
-
-    ``x + β·conv3(SCA(SimpleGate(conv2(conv1(LN(x))))))``, then
-    ``y + γ·conv5(SimpleGate(conv4(LN(y))))``; β and γ start at zero.
-
-    With coordinate masks the block runs on *folded* masks (:meth:`folded_masks`): the
-    two halves of the conv2 and conv4 masks meet in a SimpleGate,
-    ``(Ma⊙a)⊙(Mb⊙b) = (Ma⊙Mb)⊙(a⊙b)``, so each pair becomes one mask of ``c`` channels
-    applied after the gate, and β and γ scale the conv3 and conv5 masks, whose products
-    are then added to the residual in one ``addcmul``. On a mask lattice
-    (``ModelConfig.mask_spacing``) the folded masks are what is interpolated.
-
-    Parameters
-    ----------
-    channels : int
-        Feature channels ``c`` (the block widens to ``2c`` inside).
-    axis_features : int
-        Positional-encoding features per axis.
-    mlp_hidden : int or None
-        Hidden units of the mask MLPs; ``None`` builds a plain NAFBlock.
-    lenses : int
-        1 for masks shared across lenses, 9 for lens-specific masks.
-    """
-
-    def __init__(
-        self, channels: int, axis_features: int, mlp_hidden: int | None, lenses: int = 1
-    ) -> None:
-        super().__init__()
-        c = channels
-
-        def gate(cin: int, cout: int, kernel: int = 1, groups: int = 1) -> CoordGate:
-            return CoordGate(cin, cout, kernel, groups, axis_features, mlp_hidden, lenses)
-
-        self.norm1 = LayerNorm2d(c)
-        self.conv1 = gate(c, 2 * c)
-        self.conv2 = gate(2 * c, 2 * c, 3, groups=2 * c)
-        self.gate = SimpleGate()
-        self.sca = SimpleChannelAttention(c)
-        self.conv3 = gate(c, c)
-        self.beta = nn.Parameter(torch.zeros(1, c, 1, 1))
-        self.norm2 = LayerNorm2d(c)
-        self.conv4 = gate(c, 2 * c)
-        self.conv5 = gate(c, c)
-        self.gamma = nn.Parameter(torch.zeros(1, c, 1, 1))
-        self.cache_name = ""  # set by the owning model: the block's key in the mask cache
-
-    def forward(self, x: torch.Tensor, grid: CoordGrid | None) -> torch.Tensor:
-        if grid is None or self.conv1.mlp is None:
-            z = self.conv2(self.conv1(self.norm1(x), grid), grid)
-            z = self.conv3(self.sca(self.gate(z)), grid)
-            y = torch.addcmul(x, self.beta, z)
-            z = self.conv5(self.gate(self.conv4(self.norm2(y), grid)), grid)
-            return torch.addcmul(y, self.gamma, z)
-        m1, m2, m3, m4, m5 = zip(*self._tile_masks(x, grid), strict=True)
-        z = _multiply(self.conv1.conv(self.norm1(x)), m1)
-        z = _multiply(self.gate(self.conv2.conv(z)), m2)
-        y = _add_product(x, m3, self.conv3.conv(self.sca(z)))
-        z = _multiply(self.gate(self.conv4.conv(self.norm2(y))), m4)
-        return _add_product(y, m5, self.conv5.conv(z))
-
-    def folded_masks(
-        self, enc_row: torch.Tensor, enc_col: torch.Tensor
-    ) -> tuple[torch.Tensor, ...]:
-        """The block's masks folded as in the class docstring.
-
-        Returns
-        -------
-        tuple of torch.Tensor
-            conv1 ``(B, lenses, 2c, h, w)``, then the conv2 pair, β·conv3, the conv4
-            pair and γ·conv5 ``(B, lenses, c, h, w)``, in the MLPs' dtype.
-        """
-        c = self.beta.shape[1]
-        m2 = self.conv2.masks(enc_row, enc_col)
-        m4 = self.conv4.masks(enc_row, enc_col)
-        return (
-            self.conv1.masks(enc_row, enc_col),
-            m2[:, :, :c] * m2[:, :, c:],
-            self.conv3.masks(enc_row, enc_col) * self.beta.view(c, 1, 1),
-            m4[:, :, :c] * m4[:, :, c:],
-            self.conv5.masks(enc_row, enc_col) * self.gamma.view(c, 1, 1),
-        )
-
-    def _tile_masks(self, x: torch.Tensor, grid: CoordGrid) -> list[tuple[torch.Tensor, ...]]:
-        """Per tile, the folded masks ``(lenses, C, h, w)`` in the compute dtype: from the
-        cache, or computed (at the pixels, or at the lattice nodes and interpolated; large
-        lattice masks used once as :class:`~.lattice.RowInterpolant`, finished by
-        :func:`_multiply` and :func:`_add_product` band by band)."""
-        c, mlp = self.beta.shape[1], self.conv1.mlp
-        dtype = _mask_dtype(x.device, mlp.w_out.dtype)
-        channels_last = _is_channels_last(x)
-        if grid.cached and grid.lattice is not None:
-            return grid.cached_lattice_masks(self.cache_name, self.folded_masks, dtype,
-                                             channels_last)  # fmt: skip
-        if grid.cached:
-            shapes = [(mlp.lenses, 2 * c)] + [(mlp.lenses, c)] * 4
-            pixel_bytes = mlp.lenses * (mlp.w_out.shape[-1] + 8 * c) * mlp.w_out.element_size()
-            return tile_masks(grid, self.cache_name, self.folded_masks, shapes, pixel_bytes,
-                              dtype)  # fmt: skip
-        tiles = grid.tile_masks(self.folded_masks(grid.enc_row, grid.enc_col), channels_last)
-        return [tuple(m.to(dtype) for m in masks) for masks in tiles]
-
-
-def _is_channels_last(x: torch.Tensor) -> bool:
+def is_channels_last(x: torch.Tensor) -> bool:
     """Whether ``x``'s channels vary fastest in memory (and its columns do not)."""
     return x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous()
-
-
-def _mask_dtype(device: torch.device, default: torch.dtype) -> torch.dtype:
-    """The dtype masks are stored and applied in: autocast's, else the parameters'."""
-    if torch.is_autocast_enabled(device.type):
-        return torch.get_autocast_dtype(device.type)
-    return default
-
-
-def _tiles(t: torch.Tensor, batch: int) -> torch.Tensor:
-    """``(B·V, C, h, w)`` viewed as ``(B, V, C, h, w)``."""
-    return t.view(batch, -1, *t.shape[1:])
-
-
-def _in_memory_order(t: torch.Tensor, channels_last: bool) -> torch.Tensor:
-    """``(B, V, C, h, w)`` with the channels moved last when they are last in memory.
-
-    Products that need gradients run on this view: their masks' gradients are sums over
-    the tiles, which torch takes 2-3x faster along a dense last axis than along the
-    channels-last layout of a 5-d tensor (the same values, measured bit for bit).
-    """
-    return t.permute(0, 1, 3, 4, 2) if channels_last else t
-
-
-def _from_memory_order(t: torch.Tensor, channels_last: bool, like: torch.Tensor) -> torch.Tensor:
-    """Undo :func:`_in_memory_order` and view as ``like`` ``(B·V, C, h, w)``."""
-    if channels_last:
-        t = t.permute(0, 1, 4, 2, 3)
-    return t.reshape(like.shape)
-
-
-def _multiply(y: torch.Tensor, masks: tuple[torch.Tensor, ...]) -> torch.Tensor:
-    """``y`` multiplied by the mask of each tile: in place (``y`` is a temporary) without
-    gradient, out of place (the product needs ``y``) with it."""
-    if torch.is_grad_enabled():
-        last = _is_channels_last(y)
-        product = (_in_memory_order(_tiles(y, len(masks)), last)
-                   * _in_memory_order(_batched(masks), last))  # fmt: skip
-        return _from_memory_order(product, last, y)
-    for tile, mask in zip(_tiles(y, len(masks)), masks, strict=True):
-        if isinstance(mask, RowInterpolant):
-            mask.multiply_(tile)
-        else:
-            tile.mul_(mask)
-    return y
-
-
-def _batched(masks: tuple[torch.Tensor, ...]) -> torch.Tensor:
-    """The tiles' masks as one ``(B or 1, lenses, C, h, w)`` tensor: tiles that share one
-    mask (training runs at one origin) broadcast it instead of copying it."""
-    if all(m is masks[0] for m in masks):
-        return masks[0].unsqueeze(0)
-    return torch.stack(masks)
-
-
-def _add_product(
-    x: torch.Tensor, masks: tuple[torch.Tensor, ...], z: torch.Tensor
-) -> torch.Tensor:
-    """``x + mask ⊙ z`` tile by tile, in one pass per tile."""
-    batch = len(masks)
-    if torch.is_grad_enabled():
-        last = _is_channels_last(x)
-        x5, z5 = (_in_memory_order(_tiles(t, batch), last) for t in (x, z))
-        out = torch.addcmul(x5, _in_memory_order(_batched(masks), last), z5)
-        return _from_memory_order(out, last, x)
-    dtype = torch.promote_types(torch.promote_types(x.dtype, z.dtype), masks[0].dtype)
-    out = torch.empty_like(x, dtype=dtype)
-    for o, xb, m, zb in zip(_tiles(out, batch), _tiles(x, batch), masks, _tiles(z, batch),
-                            strict=True):
-        if isinstance(m, RowInterpolant):
-            m.add_product(xb, zb, o)
-        else:
-            torch.addcmul(xb, m, zb, out=o)
-    return out
 
 
 class ViewFusion(nn.Module):

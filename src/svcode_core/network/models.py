@@ -1,59 +1,164 @@
-"""The SV-CoDe models: the shared U-Net, Demixing-Net, Recon-Net and the joint SVCoDe.
+"""SV-CoDe as the paper draws it: CoordGate, CoDe block, U-Net, the two stages, the model.
 
-Every model takes the nine stacked sub-view tiles ``(B, 9, H, W)`` (``(B, 81, H, W)``,
-lens-major, for a demixing stage with ``ModelConfig.lens_context``), the integer
-``(row, col)`` origin of each tile inside its ``S × S`` sub-view and ``S``. Pixel
-coordinates are global: pixel ``(i, j)`` of a tile sits at ``2(origin + (i, j))/(S-1) - 1``.
+Every model takes the nine stacked sub-view tiles ``(B, 9, H, W)`` (``(B, 9 k, H, W)``,
+lens-major, for a demixing stage with ``k`` crops per lens: ``ModelConfig.lens_context``),
+the integer ``(row, col)`` origin of each tile inside its ``S × S`` sub-view, and ``S``.
+Pixel ``(i, j)`` of a tile sits at the normalised coordinate ``2(origin + (i, j))/(S-1) - 1``.
 Inputs of any size are zero-padded at the bottom and right to a multiple of the U-Net
 stride (the coordinates continue over the padding) and the outputs are cropped back.
-Outputs pass through a sigmoid, or are clamped at zero (``ModelConfig.output``).
-Features run in the channels-last (NHWC) memory format, which makes the cm2-mini network
-~1.7× faster on CPU; the math is unchanged.
+
+The classes here state the formula. Each call asks a mask provider (:mod:`.masks`) for
+each block's masks. By default that is :class:`~.fast.FastMasks`, whose folded, cached or
+lattice-interpolated masks run the same formula rearranged for speed (:mod:`.fast`);
+:mod:`.base` holds input checks, the mask cache and the sizes tiled inference needs.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Hashable, Sequence
-from typing import NamedTuple
+from collections.abc import Sequence
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
-from ..config import DEFAULT_MEMORY_BUDGET, N_LENSES
-from .blocks import CoDeBlock, ViewFusion
+from ..config import N_LENSES
+from .base import TiledModel, set_pooling
+from .blocks import LayerNorm2d, SimpleChannelAttention, SimpleGate, ViewFusion
 from .config import ModelConfig
-from .coordgate import CoordGate, CoordGrid, MaskCache, MaskField
-from .encoding import encoding_size, level_coordinates, positional_encoding
-from .lattice import interpolate, lattice_axis
+from .encoding import encoding_size
+from .fast import FoldedMasks
+from .masks import MaskProvider
 
-__all__ = ["DemixNet", "MaskLayer", "ReconNet", "SVCoDe", "UNet", "with_lens_context"]
-
-DEFAULT_CACHE_BYTES = DEFAULT_MEMORY_BUDGET
+__all__ = ["CoDeBlock", "CoordGate", "CoordMLP", "DemixNet", "ReconNet", "SVCoDe", "UNet"]
 
 
-class MaskLayer(NamedTuple):
-    """One gated convolution: where it sits and the shape of its mask."""
+class CoordMLP(nn.Module):
+    """The mask ``M(v, u) = sigmoid(W₂ relu(W₁ [γ(v), γ(u)] + b₁) + b₂)`` of ``channels``
+    channels from ``axis_features`` encoding features per axis, one MLP per lens (or one
+    for all, ``lenses=1``). ``W₁`` acts on the concatenated row and column encodings, so
+    it splits exactly into a row term plus a column term, evaluated on the ``h + w`` axis
+    samples and broadcast: only the output layer runs per pixel."""
 
-    stage: str
-    block: str
-    layer: str
-    channels: int
-    lenses: int
-    level: int
+    def __init__(self, axis_features: int, hidden: int, channels: int, lenses: int = 1) -> None:
+        super().__init__()
+        self.lenses, self.channels = lenses, channels
+        self.w_row = nn.Parameter(torch.empty(lenses, hidden, axis_features))
+        self.w_col = nn.Parameter(torch.empty(lenses, hidden, axis_features))
+        self.b_hidden = nn.Parameter(torch.empty(lenses, hidden, 1, 1))
+        self.w_out = nn.Parameter(torch.empty(lenses, channels, hidden))
+        self.b_out = nn.Parameter(torch.empty(lenses, channels, 1))
+        fan_in = 2 * axis_features, 2 * axis_features, 2 * axis_features, hidden, hidden
+        for weight, n in zip(self.parameters(), fan_in, strict=True):
+            nn.init.uniform_(weight, -1.0 / math.sqrt(n), 1.0 / math.sqrt(n))  # as nn.Linear
+
+    def forward(
+        self, enc_row: torch.Tensor, enc_col: torch.Tensor, channels: slice | None = None
+    ) -> torch.Tensor:
+        """Masks ``(B, lenses, C, h, w)`` in ``(0, 1)``, channels varying fastest in memory,
+        at encodings ``(B, h, E)`` and ``(B, w, E)``; ``channels`` selects mask channels."""
+        lenses, hidden_size = self.w_row.shape[:2]
+        rows = torch.einsum("bhe,nke->bnhk", enc_row, self.w_row)
+        cols = torch.einsum("bwe,nke->bnwk", enc_col, self.w_col)
+        bias = self.b_hidden.view(lenses, 1, 1, hidden_size)
+        hidden = torch.relu(rows.unsqueeze(-2) + cols.unsqueeze(-3) + bias)
+        w_out, b_out = self.w_out, self.b_out
+        if channels is not None:
+            w_out, b_out = w_out[:, channels], b_out[:, channels]
+        logits = torch.matmul(hidden, w_out.transpose(1, 2).unsqueeze(1))
+        logits = logits + b_out.view(lenses, 1, 1, -1)
+        return torch.sigmoid(logits).permute(0, 1, 4, 2, 3)
+
+
+class CoordGate(nn.Module):
+    """``M(r) ⊙ (W ∗ x)``: a convolution gated by a coordinate mask, one value per output
+    channel and pixel. ``mlp_hidden=None`` builds no MLP: the plain convolution
+    (``coord_gate=False``). The convolution is zero padded by ``kernel_size // 2``; the
+    other parameters are those of :class:`CoordMLP` and ``nn.Conv2d``."""
+
+    def __init__(self, in_channels: int, out_channels: int, kernel_size: int = 1, groups: int = 1,
+                 axis_features: int = 8, mlp_hidden: int | None = 64,
+                 lenses: int = 1) -> None:  # fmt: skip
+        super().__init__()
+        self.conv = nn.Conv2d(in_channels, out_channels, kernel_size, padding=kernel_size // 2,
+                              groups=groups)  # fmt: skip
+        self.mlp = None
+        if mlp_hidden is not None:
+            self.mlp = CoordMLP(axis_features, mlp_hidden, out_channels, lenses)
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        """``M ⊙ conv(x)``: ``x`` ``(B·V, C_in, h, w)`` with ``V`` views per tile, ``mask``
+        ``(B, lenses, C, h, w)`` with ``lenses`` ``V`` or 1 (one mask for every view)."""
+        y = self.conv(x)
+        if self.mlp is None:
+            return y
+        if mask is None:
+            raise ValueError("a CoordGate with a mask MLP needs the mask of its tiles")
+        return (y.unflatten(0, (mask.shape[0], -1)) * mask.to(y.dtype)).flatten(0, 1)
+
+    def masks(
+        self, enc_row: torch.Tensor, enc_col: torch.Tensor, channels: slice | None = None
+    ) -> torch.Tensor:
+        """``M`` at encodings ``(B, h, E)``, ``(B, w, E)``: ``(B, lenses, C, h, w)``, in the
+        MLP's dtype whatever autocast says (the masks are computed once, then reused)."""
+        if self.mlp is None:
+            raise ValueError("this layer has no coordinate mask (coord_gate=False)")
+        dtype = self.mlp.w_out.dtype
+        with torch.autocast(enc_row.device.type, enabled=False):
+            return self.mlp(enc_row.to(dtype), enc_col.to(dtype), channels)
+
+
+class CoDeBlock(nn.Module):
+    """A NAFNet block in which every convolution is a :class:`CoordGate`::
+
+        z   = SimpleGate(M₂ ⊙ conv2(M₁ ⊙ conv1(LN(x))))
+        y   = x + β ⊙ M₃ ⊙ conv3(SCA(z))
+        out = y + γ ⊙ M₅ ⊙ conv5(SimpleGate(M₄ ⊙ conv4(LN(y))))
+
+    ``β`` and ``γ`` start at zero; ``c = channels`` features, ``2c`` out of conv1, conv2,
+    conv4. ``mlp_hidden=None`` builds a plain NAFBlock; ``lenses`` as in :class:`CoordMLP`.
+    """
+
+    def __init__(
+        self, channels: int, axis_features: int, mlp_hidden: int | None, lenses: int = 1
+    ) -> None:
+        super().__init__()
+        c = channels
+
+        def gate(cin: int, cout: int, kernel: int = 1, groups: int = 1) -> CoordGate:
+            return CoordGate(cin, cout, kernel, groups, axis_features, mlp_hidden, lenses)
+
+        self.norm1 = LayerNorm2d(c)
+        self.conv1 = gate(c, 2 * c)
+        self.conv2 = gate(2 * c, 2 * c, 3, groups=2 * c)  # depthwise
+        self.gate = SimpleGate()
+        self.sca = SimpleChannelAttention(c)
+        self.conv3 = gate(c, c)
+        self.beta = nn.Parameter(torch.zeros(1, c, 1, 1))
+        self.norm2 = LayerNorm2d(c)
+        self.conv4 = gate(c, 2 * c)
+        self.conv5 = gate(c, c)
+        self.gamma = nn.Parameter(torch.zeros(1, c, 1, 1))
+
+    def forward(self, x: torch.Tensor, masks: Sequence | FoldedMasks | None = None) -> torch.Tensor:
+        """``masks``: M₁ … M₅ (``None`` without coordinate gates), or the fast route's
+        :class:`~.fast.FoldedMasks`, which runs this formula rearranged."""
+        if isinstance(masks, FoldedMasks):
+            return masks.run(self, x)
+        m1, m2, m3, m4, m5 = (None,) * 5 if masks is None else masks
+        z = self.gate(self.conv2(self.conv1(self.norm1(x), m1), m2))
+        y = torch.addcmul(x, self.beta, self.conv3(self.sca(z), m3))
+        z = self.gate(self.conv4(self.norm2(y), m4))
+        return torch.addcmul(y, self.gamma, self.conv5(z, m5))
+
+
+def _block(channels: int, config: ModelConfig, lenses: int = 1) -> CoDeBlock:
+    hidden = config.mlp_hidden if config.coord_gate else None
+    features = encoding_size(config.pe_bands, config.positional_encoding)
+    return CoDeBlock(channels, features, hidden, lenses)
 
 
 def _blocks(count: int, channels: int, config: ModelConfig) -> nn.ModuleList:
-    hidden = config.mlp_hidden if config.coord_gate else None
-    features = encoding_size(config.pe_bands, config.positional_encoding)
-    return nn.ModuleList(CoDeBlock(channels, features, hidden) for _ in range(count))
-
-
-def _run_blocks(blocks: nn.ModuleList, x: torch.Tensor, grid: CoordGrid | None) -> torch.Tensor:
-    for block in blocks:
-        x = block(x, grid)
-    return x
+    return nn.ModuleList(_block(channels, config) for _ in range(count))
 
 
 class UNet(nn.Module):
@@ -63,13 +168,8 @@ class UNet(nn.Module):
     convolution, up-sampling a 1×1 convolution and a pixel shuffle.
     """
 
-    def __init__(
-        self,
-        config: ModelConfig,
-        enc_blocks: Sequence[int],
-        middle_blocks: int,
-        dec_blocks: Sequence[int],
-    ) -> None:
+    def __init__(self, config: ModelConfig, enc_blocks: Sequence[int], middle_blocks: int,
+                 dec_blocks: Sequence[int]) -> None:  # fmt: skip
         super().__init__()
         self.levels = len(enc_blocks)
         widths = [config.width * 2**k for k in range(self.levels + 1)]
@@ -81,25 +181,32 @@ class UNet(nn.Module):
         )
         self.middle = _blocks(middle_blocks, widths[-1], config)
         self.ups = nn.ModuleList(
-            nn.Sequential(nn.Conv2d(widths[k + 1], 2 * widths[k + 1], 1, bias=False),
-                          nn.PixelShuffle(2))
+            nn.Sequential(
+                nn.Conv2d(widths[k + 1], 2 * widths[k + 1], 1, bias=False), nn.PixelShuffle(2)
+            )
             for k in range(self.levels)
         )
         self.decoders = nn.ModuleList(
             _blocks(n, widths[k], config) for k, n in enumerate(dec_blocks)
         )
 
-    def forward(self, x: torch.Tensor, grids: Sequence[CoordGrid | None]) -> torch.Tensor:
-        """``x`` ``(B, width, H, W)`` with ``H, W`` divisible by ``2**levels``."""
+    def forward(self, x: torch.Tensor, masks: MaskProvider | None = None) -> torch.Tensor:
+        """``x`` ``(B, width, H, W)``, ``H`` and ``W`` divisible by ``2**levels``; ``masks``
+        a mask provider (:mod:`.masks`), ``None`` without coordinate gates."""
+
+        def run(blocks: nn.ModuleList, x: torch.Tensor, level: int) -> torch.Tensor:
+            for block in blocks:
+                x = block(x, None if masks is None else masks(block, level))
+            return x
+
         skips = []
         for level, (blocks, down) in enumerate(zip(self.encoders, self.downs, strict=True)):
-            x = _run_blocks(blocks, x, grids[level])
+            x = run(blocks, x, level)
             skips.append(x)
             x = down(x)
-        x = _run_blocks(self.middle, x, grids[self.levels])
+        x = run(self.middle, x, self.levels)
         for level in reversed(range(self.levels)):
-            x = self.ups[level](x) + skips[level]
-            x = _run_blocks(self.decoders[level], x, grids[level])
+            x = run(self.decoders[level], self.ups[level](x) + skips[level], level)
         return x
 
     def named_blocks(self) -> list[tuple[str, CoDeBlock, int]]:
@@ -108,427 +215,63 @@ class UNet(nn.Module):
         for tag, groups in (("enc", self.encoders), ("dec", self.decoders)):
             for level, blocks in enumerate(groups):
                 out += [(f"{tag}{level}.{i}", b, level) for i, b in enumerate(blocks)]
-        out += [(f"middle.{i}", b, self.levels) for i, b in enumerate(self.middle)]
-        return out
+        return out + [(f"middle.{i}", b, self.levels) for i, b in enumerate(self.middle)]
 
 
 class _ViewNet(nn.Module):
-    """Shared design of both stages: view-dependent CoDe block, view fusion, U-Net.
-
-    Each view goes through a 3×3 convolution to ``view_width`` channels and the
-    view-dependent CoDe block (shared convolutions, lens-specific mask MLPs); the
-    features of the nine views are fused by :class:`~.blocks.ViewFusion` into ``width``
-    channels for the shared U-Net, and a 3×3 convolution and the output activation
-    (:attr:`ModelConfig.output`) give the output.
-    """
+    """One stage: per view a 3×3 convolution to ``view_width`` channels and the
+    view-dependent CoDe block (shared convolutions, a mask MLP per lens), the views fused
+    into ``width`` channels (:class:`~.blocks.ViewFusion`), the U-Net, a 3×3 convolution
+    and the output activation (:attr:`ModelConfig.output`)."""
 
     stage = ""
 
-    def __init__(
-        self,
-        config: ModelConfig,
-        out_channels: int,
-        enc_blocks: Sequence[int],
-        middle_blocks: int,
-        dec_blocks: Sequence[int],
-    ) -> None:
+    def __init__(self, config: ModelConfig, out_channels: int, enc_blocks: Sequence[int],
+                 middle_blocks: int, dec_blocks: Sequence[int]) -> None:  # fmt: skip
         super().__init__()
         self.config = config.validate()
-        hidden = config.mlp_hidden if config.coord_gate else None
-        features = encoding_size(config.pe_bands, config.positional_encoding)
         lenses = N_LENSES if config.lens_specific_first_block else 1
         self.views_per_lens = config.views_per_lens if self.stage == "demix" else 1
         if self.views_per_lens == 1:  # one convolution shared by the nine views
             self.intro = nn.Conv2d(1, config.view_width, 3, padding=1)
         else:  # each lens combines its own crops: which of them matter depends on the lens
-            self.intro = nn.Conv2d(N_LENSES * self.views_per_lens, N_LENSES * config.view_width,
-                                   3, padding=1, groups=N_LENSES)
-        self.view_block = CoDeBlock(config.view_width, features, hidden, lenses)
+            crops, width = N_LENSES * self.views_per_lens, N_LENSES * config.view_width
+            self.intro = nn.Conv2d(crops, width, 3, padding=1, groups=N_LENSES)
+        self.view_block = _block(config.view_width, config, lenses)
         self.fusion = ViewFusion(N_LENSES, config.view_width, config.width)
         self.unet = UNet(config, enc_blocks, middle_blocks, dec_blocks)
         self.ending = nn.Conv2d(config.width, out_channels, 3, padding=1)
-        self._set_pooling(config.pool_window)
-
-    def _set_pooling(self, window: int) -> None:
-        """Channel attention and view fusion pool over ``window`` level-0 pixels (0: the
-        whole tile), on the grid of the stage's coarsest level (:func:`~.blocks.pooled_mean`)."""
-        for _, block, level in self.named_blocks():
-            scaled = max(window >> level, 1) if window else 0  # never 0 (whole tile) by rounding
-            block.sca.window, block.sca.cell = scaled, 2 ** (self.levels - level)
-        self.fusion.window, self.fusion.cell = window, 2**self.levels
+        set_pooling(self, config.pool_window)
 
     @property
     def levels(self) -> int:
         """Down-sampling steps of the U-Net (the stride is ``2**levels``)."""
         return self.unet.levels
 
-    def run(self, views: torch.Tensor, grids: Sequence[CoordGrid | None]) -> torch.Tensor:
-        """Network on padded views ``(B, 9 · views_per_lens, H, W)``; ``grids[k]`` for
-        level ``k``."""
+    def run(self, views: torch.Tensor, masks: MaskProvider | None) -> torch.Tensor:
+        """The stage on padded views ``(B, 9 · views_per_lens, H, W)``; ``masks`` a mask
+        provider (:mod:`.masks`)."""
         batch, _, h, w = views.shape
         # the view block's few channels per lens run channels first (see LayerNorm2d)
         if self.views_per_lens == 1:
             x = self.intro(views.reshape(batch * N_LENSES, 1, h, w).contiguous())
         else:
             x = self.intro(views.contiguous()).reshape(batch * N_LENSES, -1, h, w)
-        x = self.view_block(x, grids[0])
-        x = self.fusion(_channels_last(x.reshape(batch, N_LENSES * x.shape[1], h, w)))
-        out = self.ending(self.unet(x, grids))
+        x = self.view_block(x, None if masks is None else masks(self.view_block, 0))
+        x = x.reshape(batch, -1, h, w).contiguous(memory_format=torch.channels_last)
+        out = self.ending(self.unet(self.fusion(x), masks))
         if self.config.output == "sigmoid":
             return torch.sigmoid(out)
         return out if self.training else out.clamp_min(0)
-
-    def named_gates(self) -> list[tuple[MaskLayer, CoordGate]]:
-        """Every gated convolution of this stage with its description."""
-        out = []
-        for block_name, block, level in self.named_blocks():
-            for layer in ("conv1", "conv2", "conv3", "conv4", "conv5"):
-                gate = getattr(block, layer)
-                if gate.mlp is not None:
-                    info = MaskLayer(self.stage, block_name, layer, gate.mlp.channels,
-                                     gate.mlp.lenses, level)
-                    out.append((info, gate))
-        return out
 
     def named_blocks(self) -> list[tuple[str, CoDeBlock, int]]:
         """``(name, block, level)`` for every CoDe block of this stage."""
         return [("view", self.view_block, 0), *self.unet.named_blocks()]
 
 
-def _field_cells(sub_view_size: int, levels: int) -> int:
-    """Level-0 side of the cached mask field: pixels ``0 .. S + 2**levels - 2`` rounded up
-    to the model stride, so a tile padded to the stride fits it whenever its unpadded
-    part lies inside the sub-view."""
-    stride = 2**levels
-    return math.ceil((sub_view_size + stride - 1) / stride) * stride
-
-
-def _channels_last(x: torch.Tensor) -> torch.Tensor:
-    """Features run channels-last (NHWC): faster convolutions on CPU."""
-    return x.contiguous(memory_format=torch.channels_last)
-
-
-class _MaskedModel(nn.Module):
-    """Tile coordinates, the mask cache and mask inspection for a top-level model."""
-
-    def _stages(self) -> list[_ViewNet]:
-        raise NotImplementedError
-
-    def _setup_masks(self, config: ModelConfig) -> None:
-        self.model_config = config
-        self._mask_cache: MaskCache | None = None
-        self._gates = {}
-        self._masked_blocks: list[tuple[CoDeBlock, int]] = []
-        for stage in self._stages():
-            for info, gate in stage.named_gates():
-                self._gates[(info.stage, info.block, info.layer)] = (info, gate)
-            for name, block, level in stage.named_blocks():
-                if block.conv1.mlp is not None:
-                    block.cache_name = f"{stage.stage}/{name}"
-                    self._masked_blocks.append((block, level))
-
-    # ------------------------------------------------------------- mask cache
-    def cache_masks(
-        self, enabled: bool = True, max_bytes: int = DEFAULT_CACHE_BYTES
-    ) -> _CacheSwitch:
-        """Switch the mask cache on (or off); usable plainly or as a context manager.
-
-        The cache serves only forward passes without gradient (``torch.no_grad`` or
-        ``torch.inference_mode``); with gradients enabled masks are always recomputed.
-        It holds one entry per CoDe block (and sub-view size and dtype): the block's
-        folded masks (:meth:`~.blocks.CoDeBlock.folded_masks`) over the whole padded
-        sub-view grid of its U-Net level, channels-last, in the compute dtype
-        (autocast's, else the parameters'). At level ``k`` a tile whose origin is a
-        multiple of ``2**k`` crops its masks from it (every tile at level 0, and every
-        tile of a grid whose origins are multiples of the model stride); other tiles get
-        theirs computed. A whole sub-view needs :meth:`mask_field_bytes`; with less,
-        the masks that fit stay cached and the others are computed per call (see
-        :class:`~.coordgate.MaskCache`). For models with masks on a lattice
-        (``mask_spacing > 0``) it keeps instead each tile's interpolated masks under the
-        tile's place (origin, shape, sub-view size): the frames of a recording run the same
-        tiles, and reading the masks costs less than interpolating them again. Entries are
-        dropped when the weights they depend on change (in-place updates, loading, dtype
-        or device moves). Leaving the ``with`` block restores the previous cache.
-
-        Examples
-        --------
-        >>> model = SVCoDe(ModelConfig.mini())
-        >>> with model.cache_masks(max_bytes=2**28), torch.no_grad():
-        ...     pass  # run the tiles of every frame here
-        """
-        previous = self._mask_cache
-        self._mask_cache = MaskCache(max_bytes) if enabled else None
-        return _CacheSwitch(self, previous)
-
-    def mask_cache_info(self) -> dict[str, int | bool]:
-        """``enabled``, ``entries``, ``bytes``, ``max_bytes``, ``hits`` and ``misses``."""
-        if self._mask_cache is None:
-            return {"enabled": False, "entries": 0, "bytes": 0, "max_bytes": 0,
-                    "hits": 0, "misses": 0}
-        return {"enabled": True, **self._mask_cache.info()}
-
-    def mask_field_bytes(self, sub_view_size: int, dtype: torch.dtype = torch.float32) -> int:
-        """Bytes the mask cache needs to hold every mask for a whole ``S × S`` sub-view.
-
-        That is the ``max_bytes`` for which tiled inference of a stack never recomputes
-        a mask (with tile origins on multiples of the model stride); ``dtype`` is the
-        compute dtype (the autocast dtype under autocast).
-        """
-        cells = _field_cells(sub_view_size, self._levels())
-        return dtype.itemsize * sum(
-            6 * block.beta.shape[1] * block.conv1.mlp.lenses * (cells // 2**level) ** 2
-            for block, level in self._masked_blocks
-        )
-
-    def _levels(self) -> int:
-        return max(stage.levels for stage in self._stages())
-
-    def set_pool_window(self, window: int) -> None:
-        """Pool channel attention and view fusion over ``window`` level-0 pixels around each
-        pixel, or (0) over the whole tile: :attr:`ModelConfig.pool_window`, which this
-        sets (a saved model records it). Weights and training are unaffected.
-
-        Examples
-        --------
-        >>> model = SVCoDe(ModelConfig.mini())
-        >>> model.set_pool_window(96)
-        >>> model.model_config.pool_window
-        96
-        """
-        self.model_config = self.model_config.replace(pool_window=window)
-        for stage in self._stages():
-            stage.config = stage.config.replace(pool_window=window)
-            stage._set_pooling(window)
-
-    @property
-    def stride(self) -> int:
-        """The model stride ``2**levels``: tile sides are padded to a multiple of it."""
-        return 2 ** self._levels()
-
-    def working_bytes_per_pixel(self, dtype: torch.dtype = torch.float32) -> int:
-        """An upper estimate of the inference working memory per tile pixel.
-
-        ``16 · (9 · view_width + width)`` values of ``dtype``: the nine views' features
-        and the fused features with the temporaries of a block and the U-Net skips.
-        Measured peaks (float32, one tile): ``ModelConfig.mini()`` 2.1–2.6 kB per pixel
-        against 3.3 kB estimated; ``ModelConfig.reference()`` 4.7 kB against 6.7 kB.
-        """
-        config = self.model_config
-        return dtype.itemsize * 16 * (9 * config.view_width + config.width)
-
-    def receptive_radius(self) -> int:
-        """Level-0 pixels a tile's output depends on beyond its own pixels, through the
-        convolutions (each 3×3 depthwise convolution at level ``k`` reaches ``2^k``
-        pixels, each down- or up-sampling ``2^k``, the first and last 3×3 convolutions
-        one); channel attention averages over the whole tile, or a window around each
-        pixel (``pool_window``), and is not counted."""
-        radius = 0
-        for stage in self._stages():
-            radius += 2  # the stage's first and last 3x3 convolutions
-            radius += sum(2**level for _, _, level in stage.named_blocks())
-            radius += 2 * sum(2**level for level in range(stage.levels))
-        return radius
-
-    def _weights_key(self) -> Hashable:
-        params = [p for _, gate in self._gates.values() for p in gate.mlp.parameters()]
-        params += [p for block, _ in self._masked_blocks for p in (block.beta, block.gamma)]
-        return tuple((p.data_ptr(), p._version, p.dtype, str(p.device)) for p in params)
-
-    # ------------------------------------------------------------ coordinates
-    def _grids(
-        self, origins: torch.Tensor, sub_view_size: int, shape: tuple[int, int], levels: int
-    ) -> list[CoordGrid | None]:
-        if not self._gates:
-            return [None] * (levels + 1)
-        spacing = self.model_config.mask_spacing
-        cache = self._mask_cache if not torch.is_grad_enabled() else None
-        fields: list[MaskField | None] = [None] * (levels + 1)
-        if cache is not None:
-            cache.check_weights(self._weights_key())
-            cache.new_call()
-            if not spacing:
-                fields = self._fields(origins, sub_view_size, shape, levels)
-        tiles = None
-        if cache is None or spacing:
-            distinct, tiles = torch.unique(origins, dim=0, return_inverse=True)
-            if len(distinct) == len(origins):
-                tiles = None
-            else:  # tiles at one origin share their masks
-                origins = distinct
-        if spacing:
-            return [self._lattice_grid(origins, sub_view_size, shape, level, tiles, cache)
-                    for level in range(levels + 1)]  # fmt: skip
-        rows = level_coordinates(origins[:, 0], shape[0], sub_view_size, levels)
-        cols = level_coordinates(origins[:, 1], shape[1], sub_view_size, levels)
-        return [
-            CoordGrid(self._encode(r), self._encode(c), cache, field, tiles)
-            for r, c, field in zip(rows, cols, fields, strict=True)
-        ]
-
-    def _lattice_grid(
-        self,
-        origins: torch.Tensor,
-        sub_view_size: int,
-        shape: tuple[int, int],
-        level: int,
-        tiles: torch.Tensor | None,
-        cache: MaskCache | None,
-    ) -> CoordGrid:
-        """The lattice nodes of every tile at one level (see :mod:`.lattice`); with a
-        cache, each tile's interpolated masks are kept under its place."""
-        spacing = self.model_config.mask_spacing
-        axes = [
-            lattice_axis(origins[:, axis], shape[axis] // 2**level, level, spacing, sub_view_size)
-            for axis in (0, 1)
-        ]
-        (rows, row_axis), (cols, col_axis) = axes
-        places = None
-        if cache is not None:
-            places = tuple((sub_view_size, level, *shape, *origin)
-                           for origin in origins.tolist())  # fmt: skip
-        return CoordGrid(self._encode(rows), self._encode(cols), cache=cache, tiles=tiles,
-                         lattice=(row_axis, col_axis), places=places)  # fmt: skip
-
-    def _encode(self, coords: torch.Tensor) -> torch.Tensor:
-        config, param = self.model_config, next(self.parameters())
-        return positional_encoding(coords, config.pe_bands, config.pe_scheme,
-                                   config.positional_encoding, param.dtype).to(param.device)
-
-    def _fields(
-        self, origins: torch.Tensor, sub_view_size: int, shape: tuple[int, int], levels: int
-    ) -> list[MaskField]:
-        """The whole-field grid of every level and the tiles' offsets in it.
-
-        See :func:`_field_cells` for its extent.
-        """
-        axis = level_coordinates(torch.zeros(1, dtype=torch.long),
-                                 _field_cells(sub_view_size, levels), sub_view_size, levels)
-        out = []
-        for level, coords in enumerate(axis):
-            step, cells = 2**level, coords.shape[1]
-            offsets = tuple(
-                (r // step, c // step)
-                if min(r, c) >= 0 and r % step == 0 and c % step == 0
-                and r + shape[0] <= cells * step and c + shape[1] <= cells * step
-                else None
-                for r, c in origins.tolist()
-            )
-            enc = self._encode(coords)
-            out.append(MaskField((sub_view_size, level, cells), enc, enc, offsets))
-        return out
-
-    def _prepare(
-        self, views: torch.Tensor, origins: torch.Tensor | Sequence, sub_view_size: int, levels: int
-    ) -> tuple[torch.Tensor, list[CoordGrid | None]]:
-        """Validate, pad to a multiple of ``2**levels`` and build the coordinate grids."""
-        channels = N_LENSES * self._stages()[0].views_per_lens
-        if not isinstance(views, torch.Tensor) or views.ndim != 4 or views.shape[1] != channels:
-            shape = tuple(views.shape) if isinstance(views, torch.Tensor) else type(views).__name__
-            raise ValueError(f"views must have shape (B, {channels}, H, W), got {shape}")
-        if not views.is_floating_point():
-            raise ValueError(f"views must be floating point, got {views.dtype}")
-        if not torch.isfinite(views).all():
-            raise ValueError("views contain NaN or Inf")
-        origins = torch.as_tensor(origins, device=torch.device("cpu"))
-        if origins.shape != (views.shape[0], 2) or origins.is_floating_point():
-            raise ValueError(
-                f"origins must be integer (row, col) of shape ({views.shape[0]}, 2), "
-                f"got {origins.dtype} {tuple(origins.shape)}"
-            )
-        if not isinstance(sub_view_size, int) or sub_view_size < 2:
-            raise ValueError(f"sub_view_size must be an integer >= 2, got {sub_view_size!r}")
-        stride = 2**levels
-        h, w = views.shape[-2:]
-        hp, wp = math.ceil(h / stride) * stride, math.ceil(w / stride) * stride
-        padded = F.pad(views, (0, wp - w, 0, hp - h))
-        return padded, self._grids(origins.long(), sub_view_size, (hp, wp), levels)
-
-    # --------------------------------------------------------- mask inspection
-    def mask_layers(self) -> list[MaskLayer]:
-        """Every gated convolution (empty with ``coord_gate=False``)."""
-        return [info for info, _ in self._gates.values()]
-
-    @torch.no_grad()
-    def coordinate_mask(
-        self,
-        stage: str,
-        block: str,
-        layer: str,
-        sub_view_size: int,
-        lens: int = 0,
-        channels: int | slice | None = None,
-        max_chunk_bytes: int = 1 << 27,
-    ) -> torch.Tensor:
-        """One layer's mask ``M(r)`` over the whole ``S × S`` sub-view, on request.
-
-        The MLP is evaluated at the full-resolution pixel coordinates (at a down-sampled
-        level the network samples the same function on the coarser grid), or on the mask
-        lattice and interpolated (``ModelConfig.mask_spacing``). The conv2 and conv4
-        masks act as products of their two halves; each half is shown here.
-
-        Parameters
-        ----------
-        stage, block, layer : str
-            A layer from :meth:`mask_layers` (e.g. ``"demix", "enc1.0", "conv2"``).
-        sub_view_size : int
-            ``S``.
-        lens : int
-            Lens of a lens-specific layer (ignored for shared ones).
-        channels : int or slice, optional
-            Mask channels to compute; all by default.
-        max_chunk_bytes : int
-            Memory bound for the hidden activations (rows are done in chunks).
-
-        Returns
-        -------
-        torch.Tensor
-            ``(C, S, S)`` float32 on the model's device.
-        """
-        key = (stage, block, layer)
-        if key not in self._gates:
-            raise ValueError(f"no gated layer {key}; see mask_layers()")
-        info, gate = self._gates[key]
-        if not 0 <= lens < N_LENSES:
-            raise ValueError(f"lens must be in 0..{N_LENSES - 1}, got {lens}")
-        if isinstance(channels, int):
-            channels = slice(channels, channels + 1)
-        config, param = self.model_config, gate.mlp.w_out
-        lens = min(lens, info.lenses - 1)
-        origin = torch.zeros(1, dtype=torch.long)
-        if config.mask_spacing:
-            nodes, lattice = lattice_axis(origin, sub_view_size, 0, config.mask_spacing,
-                                          sub_view_size)  # fmt: skip
-            enc = self._encode(nodes)
-            masks = gate.masks(enc, enc, channels)[:, lens : lens + 1]
-            return interpolate(masks, lattice, lattice)[0][0].float()
-        axis = level_coordinates(origin, sub_view_size, sub_view_size, 0)[0]
-        enc = positional_encoding(axis, config.pe_bands, config.pe_scheme,
-                                  config.positional_encoding, param.dtype).to(param.device)
-        row_bytes = sub_view_size * param.shape[-1] * info.lenses * param.element_size()
-        chunk = max(1, max_chunk_bytes // row_bytes)
-        parts = [
-            gate.masks(enc[:, start : start + chunk], enc, channels)[0, lens]
-            for start in range(0, sub_view_size, chunk)
-        ]
-        return torch.cat(parts, dim=1).float()
-
-
-class _CacheSwitch:
-    """Returned by :meth:`cache_masks`; as a context manager restores the previous cache."""
-
-    def __init__(self, model: _MaskedModel, previous: MaskCache | None) -> None:
-        self._model, self._previous = model, previous
-
-    def __enter__(self) -> _MaskedModel:
-        return self._model
-
-    def __exit__(self, *exc: object) -> None:
-        self._model._mask_cache = self._previous
-
-
-class _Stage(_ViewNet, _MaskedModel):
-    """One stage as a model of its own; ``stage`` names its fields of :class:`ModelConfig`
-    (``{stage}_enc_blocks``, ``{stage}_middle_blocks``, ``{stage}_dec_blocks``)."""
+class _Stage(_ViewNet, TiledModel):
+    """One stage as a model of its own, its U-Net sized by the config's
+    ``{stage}_enc_blocks``, ``{stage}_middle_blocks`` and ``{stage}_dec_blocks``."""
 
     out_channels = 1
 
@@ -545,8 +288,8 @@ class _Stage(_ViewNet, _MaskedModel):
         self, views: torch.Tensor, origins: torch.Tensor | Sequence, sub_view_size: int
     ) -> torch.Tensor:
         """The stage's output ``(B, out_channels, H, W)``; see the module docstring."""
-        padded, grids = self._prepare(views, origins, sub_view_size, self.levels)
-        return self.run(padded, grids)[..., : views.shape[-2], : views.shape[-1]]
+        padded, masks = self._prepare(views, origins, sub_view_size)
+        return self.run(padded, masks)[..., : views.shape[-2], : views.shape[-1]]
 
 
 class DemixNet(_Stage):
@@ -562,7 +305,7 @@ class ReconNet(_Stage):
     stage = "recon"
 
 
-class SVCoDe(_MaskedModel):
+class SVCoDe(TiledModel):
     """The joint model: Demixing-Net then Recon-Net, trained end to end.
 
     Parameters
@@ -589,46 +332,9 @@ class SVCoDe(_MaskedModel):
     def forward(
         self, views: torch.Tensor, origins: torch.Tensor | Sequence, sub_view_size: int
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(demixed (B, 9, H, W), reconstruction (B, 1, H, W))`` from ``views`` ``(B, 9,
-        H, W)`` (``(B, 9 k, H, W)`` with ``k`` crops per lens with ``lens_context``)."""
-        levels = self._levels()
-        padded, grids = self._prepare(views, origins, sub_view_size, levels)
-        demixed = self.demix.run(padded, grids)
-        recon = self.recon.run(demixed, grids)
+        """``(demixed (B, 9, H, W), reconstruction (B, 1, H, W))`` from ``views``."""
+        padded, masks = self._prepare(views, origins, sub_view_size)
+        demixed = self.demix.run(padded, masks)
+        recon = self.recon.run(demixed, masks)
         h, w = views.shape[-2:]
         return demixed[..., :h, :w], recon[..., :h, :w]
-
-
-def with_lens_context(model: SVCoDe, reach: int = 1) -> SVCoDe:
-    """A copy of ``model`` whose demixing stage also takes the crops up to ``reach``
-    lens pitches away (:attr:`ModelConfig.lens_context`, :attr:`ModelConfig.context_reach`),
-    computing exactly what ``model`` computes until it is trained further: the new inputs
-    enter with zero weights. The starting point for fine-tuning a model without lens
-    context, or with a shorter reach.
-
-    Examples
-    --------
-    >>> plain = SVCoDe(ModelConfig.mini()).eval()
-    >>> wide = with_lens_context(plain).eval()
-    >>> views = torch.rand(1, 81, 16, 16)
-    >>> with torch.no_grad():
-    ...     before = plain(views[:, ::9], [[0, 0]], 384)[1]
-    ...     after = wide(views, [[0, 0]], 384)[1]
-    >>> torch.allclose(before, after, rtol=1e-5, atol=1e-6)  # float32 sums in another order
-    True
-    """
-    config = model.model_config
-    if config.lens_context and reach <= config.context_reach:
-        raise ValueError(f"the model already has lens context of reach {config.context_reach}")
-    wide = SVCoDe(config.replace(lens_context=True, context_reach=reach))
-    state = model.state_dict()
-    narrow, bias = state["demix.intro.weight"], state["demix.intro.bias"]
-    if not config.lens_context:  # one first convolution shared by the nine lenses
-        narrow, bias = narrow.repeat(N_LENSES, 1, 1, 1), bias.repeat(N_LENSES)
-    narrow = narrow.unflatten(0, (N_LENSES, -1))  # (lens, out, crops, k, k)
-    weight = narrow.new_zeros(*narrow.shape[:2], wide.demix.views_per_lens, *narrow.shape[3:])
-    weight[:, :, : narrow.shape[2]] = narrow  # a shorter reach's crops come first
-    state["demix.intro.weight"] = weight.flatten(0, 1)
-    state["demix.intro.bias"] = bias
-    wide.load_state_dict(state)
-    return wide.to(next(model.parameters()).device)

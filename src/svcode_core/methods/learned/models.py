@@ -62,7 +62,7 @@ class RefinementNet(nn.Module):
         stride = 2**self.unet.levels
         h, w = x.shape[-2:]
         x = F.pad(x, (0, math.ceil(w / stride) * stride - w, 0, math.ceil(h / stride) * stride - h))
-        out = self.ending(self.unet(self.intro(x), [None] * (self.unet.levels + 1)))
+        out = self.ending(self.unet(self.intro(x)))
         out = out[..., :h, :w]
         return out if self.training else out.clamp_min(0)
 
