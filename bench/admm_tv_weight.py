@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from svcode_core.evaluation.bench import regime_simulator
+from svcode_bench.regimes import regime_simulator
 from svcode_core.evaluation.metrics import psnr
 from svcode_core.methods.build import build_reconstructor
 from svcode_core.physics.cm2 import CM2Operator

@@ -4,7 +4,7 @@
 As in the seed paper's bead experiment, equal beads (Gaussian sigma 1 object pixel,
 radius 2 px; a 10-µm bead is about half a pixel on ``cm2-mini``, so this is the smallest
 spot the grid draws cleanly) are scattered at densities from one to eighty per
-100 × 100 pixels, no two closer than two radii (:mod:`svcode_core.evaluation.beads`). Each
+100 × 100 pixels, no two closer than two radii (:mod:`svcode_bench.beads`). Each
 field is imaged through the realistic regime's departed instrument (the nominal system
 given to the methods) and reconstructed. A bead is found when a detection (a local
 maximum above Otsu's threshold of the smoothed reconstruction) lies within its radius,
@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 from probes import ADMM_AUTO, admm_auto, realistic_simulator, write_report
 
+from svcode_bench.beads import BEAD_SIGMA, BeadScore, bead_phantom, score_beads
 from svcode_core.config import SystemConfig
-from svcode_core.evaluation.beads import BEAD_SIGMA, BeadScore, bead_phantom, score_beads
 from svcode_core.methods.build import build_reconstructor
 
 RESULTS = Path(__file__).parent / "results"

@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 from probes import ADMM_AUTO, admm_auto, realistic_simulator, write_report
 
+from svcode_bench.regimes import SCENES, scene_object
 from svcode_core.config import SystemConfig
-from svcode_core.evaluation.bench import SCENES, scene_object
 from svcode_core.evaluation.metrics import psnr
 from svcode_core.methods.build import build_reconstructor
 

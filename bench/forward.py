@@ -21,7 +21,7 @@ automatically from ``system.rank_tolerance`` ("auto", per lens), it measures
   rise of the peak resident set over the process before building, and the peak resident
   set of the whole process) is reported beside the time;
 * memory and time of a frame against the field size at a fixed K: ``cm2-mini`` at S, 2S
-  and 4S (:func:`svcode_core.evaluation.footprint.doubled_system`: sensor lengths doubled, optics
+  and 4S (:func:`svcode_bench.footprint.doubled_system`: sensor lengths doubled, optics
   unchanged), with the default budget and with a small one;
 * for ``cm2-mini``, the time to simulate a frame including noise with
   :meth:`svcode_core.physics.simulate.Simulator.simulate` (which also computes the nine noiseless
@@ -79,8 +79,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from svcode_bench.footprint import PeakMemory, doubled_system
 from svcode_core.config import N_LENSES, SystemConfig
-from svcode_core.evaluation.footprint import PeakMemory, doubled_system
 from svcode_core.phantoms import make_object
 from svcode_core.physics.cm2 import CM2Operator
 from svcode_core.physics.lowrank import DEFAULT_MEMORY_BUDGET, LowRankSVOperator, decompose_psfs

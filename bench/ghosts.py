@@ -1,6 +1,6 @@
 """Ghosts of bright isolated objects (bench/results/ghosts.md).
 
-Runs :func:`svcode_core.evaluation.ghosts.ghost_probe` on ``cm2-mini`` (matched instrument,
+Runs :func:`svcode_bench.ghosts.ghost_probe` on ``cm2-mini`` (matched instrument,
 noise seed 0): a uniform disc alone in a dark field at five field positions, large (radius
 40 px) and small (6 px), bright (level 1) and dim (0.3), through the bundled SV-CoDe model
 and every ``--weights`` model, and the large bright disc at three positions through
@@ -19,8 +19,8 @@ from pathlib import Path
 
 from probes import Reconstruct, admm_method, svcode_methods, write_report
 
+from svcode_bench.ghosts import DIRECTIONS, ghost_probe
 from svcode_core.config import SystemConfig
-from svcode_core.evaluation.ghosts import DIRECTIONS, ghost_probe
 from svcode_core.physics.cm2 import CM2Operator
 from svcode_core.physics.psf_io import model_psfs
 from svcode_core.physics.simulate import Simulator

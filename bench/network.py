@@ -27,7 +27,7 @@ wall latency.
 Every process keeps freed memory for reuse, as the ``svcode`` command does
 (:mod:`svcode_core.run.allocator`). Peak memory: every variant runs in a fresh process;
 the rise of the process's peak resident set size over the timed calls is reported (it
-includes the mask cache), read by :class:`svcode_core.evaluation.footprint.PeakMemory`
+includes the mask cache), read by :class:`svcode_bench.footprint.PeakMemory`
 (Linux; empty elsewhere).
 ``tracemalloc`` cannot see torch's allocations, hence RSS. Results go to
 bench/results/network.json and network.md.
@@ -49,8 +49,8 @@ from pathlib import Path
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
+from svcode_bench.footprint import PeakMemory
 from svcode_core.config import DEFAULT_MEMORY_BUDGET
-from svcode_core.evaluation.footprint import PeakMemory
 from svcode_core.network import ModelConfig, SVCoDe
 from svcode_core.run.allocator import reuse_freed_memory
 

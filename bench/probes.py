@@ -11,8 +11,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from svcode_bench.regimes import ADMM_RANK, REGIMES, model_label
 from svcode_core.config import SystemConfig
-from svcode_core.evaluation.bench import ADMM_RANK, REGIMES, model_label
 from svcode_core.methods.base import BaseReconstructor
 from svcode_core.methods.build import build_reconstructor
 from svcode_core.physics.departures import Departures

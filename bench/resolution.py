@@ -1,7 +1,7 @@
 """The finest line pair each method resolves at the centre, mid-field, ring and corner
 (bench/results/resolution.md).
 
-A bar target (:mod:`svcode_core.evaluation.resolution`: three vertical and three horizontal
+A bar target (:mod:`svcode_bench.resolution`: three vertical and three horizontal
 bars per period, at four field positions at once) of every period is imaged through the
 realistic regime's departed instrument (the nominal system given to the methods, one noise
 seed per period) and reconstructed; a group is resolved when the dip between its bars
@@ -19,8 +19,7 @@ from pathlib import Path
 import numpy as np
 from probes import ADMM_AUTO, admm_auto, realistic_simulator, write_report
 
-from svcode_core.config import SystemConfig
-from svcode_core.evaluation.resolution import (
+from svcode_bench.resolution import (
     PERIODS,
     POSITIONS,
     RAYLEIGH_DIP,
@@ -28,6 +27,7 @@ from svcode_core.evaluation.resolution import (
     bar_target,
     finest_resolved,
 )
+from svcode_core.config import SystemConfig
 from svcode_core.methods.build import build_reconstructor
 
 RESULTS = Path(__file__).parent / "results"

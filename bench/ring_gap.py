@@ -2,7 +2,7 @@
 
 The benchmark's centre and ring PSNRs compare different parts of each scene. Here every
 scene of the benchmark (the same truths and noise seeds) is also imaged moved by half
-the field along rows, columns and both (:mod:`svcode_core.evaluation.field_position`),
+the field along rows, columns and both (:mod:`svcode_bench.field_position`),
 so the same content is reconstructed once in the centre and once in the outer ring. For
 the bundled SV-CoDe model, every ``--weights`` model and LSV-ADMM (``K`` = 3,
 ``--admm-iterations``), per regime: the zone PSNRs in place (as in ``svcode bench``) and
@@ -26,13 +26,13 @@ from pathlib import Path
 import numpy as np
 from probes import Reconstruct, admm_method, svcode_methods, write_report
 
-from svcode_core.config import SystemConfig
-from svcode_core.evaluation.bench import REGIMES, SCENES, regime_simulator, scene_object
-from svcode_core.evaluation.field_position import (
+from svcode_bench.field_position import (
     half_field_shifts,
     moved_scene,
     same_content_zones,
 )
+from svcode_bench.regimes import REGIMES, SCENES, regime_simulator, scene_object
+from svcode_core.config import SystemConfig
 from svcode_core.evaluation.metrics import edge_columns, image_quality
 from svcode_core.physics.cm2 import CM2Operator
 from svcode_core.physics.psf_io import model_psfs

@@ -1,7 +1,7 @@
 """Stability of the bundled SV-CoDe model on extreme frames (the network's rows of
 bench/results/stability.md).
 
-Runs :func:`svcode_core.evaluation.stability.stability_cases` for ``cm2-mini`` (zero, constant,
+Runs :func:`svcode_bench.stability.stability_cases` for ``cm2-mini`` (zero, constant,
 saturated, single-pixel, 1e4 dynamic range, 1 to 100 photons, bf16 and fp16) through the
 bundled model on the CPU and writes bench/results/stability_network.json and the network
 section of bench/results/stability.md (between its ``network`` markers; the rest of the
@@ -19,8 +19,8 @@ from pathlib import Path
 
 import torch
 
+from svcode_bench.stability import run_case, stability_cases
 from svcode_core.config import SystemConfig
-from svcode_core.evaluation.stability import run_case, stability_cases
 from svcode_core.methods.svcode import Reconstructor
 from svcode_core.physics.simulate import Simulator
 

@@ -37,8 +37,8 @@ import numpy as np
 import torch
 from scipy.ndimage import gaussian_filter
 
+from svcode_bench.footprint import PeakMemory
 from svcode_core.config import OpticsConfig, SystemConfig, system_from_scale
-from svcode_core.evaluation.footprint import PeakMemory
 from svcode_core.evaluation.metrics import psnr
 from svcode_core.methods.svcode import DEFAULT_MASK_CACHE_BYTES, Reconstructor
 from svcode_core.methods.tiling import exhaust, iter_tiled

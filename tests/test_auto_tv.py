@@ -117,7 +117,7 @@ def test_at_few_photons_the_frames_weight_beats_the_fixed_default(tiny_system, d
 
 
 def test_the_benchmark_row_scores_what_the_reconstructor_gives(tiny_system, dim_frame):
-    from svcode_core.evaluation.bench import Scene, admm_rows
+    from svcode_bench.regimes import Scene, admm_rows
     from svcode_core.evaluation.metrics import psnr
 
     truth, frame = dim_frame

@@ -1,4 +1,4 @@
-"""Bead detection and sizing (svcode_core.evaluation.beads) on cases with known answers."""
+"""Bead detection and sizing (svcode_bench.beads) on cases with known answers."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from svcode_core.evaluation.beads import (
+from svcode_bench.beads import (
     BeadPhantom,
     BeadScore,
     bead_phantom,

@@ -4,8 +4,8 @@ import json
 
 import numpy as np
 
+from svcode_bench.regimes import INVERSE_CRIME, REGIMES, SCENES, merge_reports
 from svcode_core.cli import main
-from svcode_core.evaluation.bench import INVERSE_CRIME, REGIMES, SCENES, merge_reports
 from svcode_core.phantoms import HELD_OUT_IMAGES
 
 

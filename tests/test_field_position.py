@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from svcode_core.evaluation.field_position import (
+from svcode_bench.field_position import (
     half_field_shifts,
     moved_scene,
     same_content_zones,

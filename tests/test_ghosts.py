@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from svcode_core.evaluation.ghosts import ghost_probe, lens_pitch
+from svcode_bench.ghosts import ghost_probe, lens_pitch
 from svcode_core.physics.simulate import Simulator
 
 

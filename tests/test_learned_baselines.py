@@ -312,7 +312,7 @@ def test_reconstruct_command_runs_a_learned_baseline(operator, tmp_path, capsys)
 
 
 def test_footprint_grows_with_the_field_for_the_baselines_only(operator, tmp_path):
-    from svcode_core.evaluation.footprint import doubled_system, model_footprint
+    from svcode_bench.footprint import doubled_system, model_footprint
     from svcode_core.network import ModelConfig, SVCoDe
 
     system = operator.system
@@ -335,7 +335,7 @@ def test_footprint_grows_with_the_field_for_the_baselines_only(operator, tmp_pat
 
 
 def test_benchmark_rows_of_a_learned_baseline_and_merge(operator, tmp_path):
-    from svcode_core.evaluation.bench import Scene, learned_rows, merge_reports
+    from svcode_bench.regimes import Scene, learned_rows, merge_reports
 
     system = operator.system
     path = save_model(tmp_path / "mw.safetensors", BUILDERS["multiwiener"](operator), system)

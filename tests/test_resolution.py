@@ -1,4 +1,4 @@
-"""The bar target and the line-pair criterion (svcode_core.evaluation.resolution)."""
+"""The bar target and the line-pair criterion (svcode_bench.resolution)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from svcode_core.evaluation.resolution import (
+from svcode_bench.resolution import (
     PERIODS,
     POSITIONS,
     RAYLEIGH_DIP,

@@ -173,7 +173,7 @@ def test_non_finite_frames_raise(tiny_system, op):
 def test_network_battery(tiny_system, tiny_weights):
     """The battery of bench/stability.py through a small random SV-CoDe model of the tiny
     system: every case finite (and bounded) or a clear error."""
-    from svcode_core.evaluation.stability import run_case, stability_cases
+    from svcode_bench.stability import run_case, stability_cases
     from svcode_core.methods.svcode import Reconstructor
     from svcode_core.physics.simulate import Simulator
 

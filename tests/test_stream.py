@@ -320,7 +320,7 @@ def test_mask_cache_keeps_its_accounts_under_threads():
     byte count equal to what it holds, within its budget."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from svcode_core.network.coordgate import MaskCache
+    from svcode_core.network import MaskCache
 
     cache = MaskCache(max_bytes=40 * 4096)
 

@@ -15,10 +15,10 @@ export OMP_NUM_THREADS="${OMP_NUM_THREADS:-2}"
 bundled=src/svcode_core/weights/cm2-mini.safetensors
 # --merge replaces the rows of the methods it runs, by label: when the new model's label
 # differs from the outgoing one's (e.g. it gains the lens context), drop the outgoing rows
-python - "$bundled" "$weights" <<'PY'
+PYTHONPATH=bench python - "$bundled" "$weights" <<'PY'
 import json, sys
 from pathlib import Path
-from svcode_core.evaluation.bench import model_label
+from svcode_bench.regimes import model_label
 old, new = (model_label(Path(p)) for p in sys.argv[1:])
 report = Path("bench/results/regimes.json")
 if old != new:

@@ -26,7 +26,7 @@ from qtpy.QtCore import QObject, Qt, Signal
 from qtpy.QtGui import QFontDatabase
 
 from svcode_core.config import ConfigError, SystemConfig
-from svcode_core.evaluation.figures import psf_montage
+from svcode_core.evaluation.figures import calibration_figure, psf_montage
 from svcode_core.methods.baselines.self_registration import (
     REGISTRATION_FRAMES,
     RegistrationRejected,
@@ -704,8 +704,9 @@ class CalibrationWidget(Container):
             return None
         folder = Path(self._folder.value)
         try:
-            files = save_calibration(calibration, folder, self._calibrated_from["nominal"],
-                                     self._calibrated_from["frames"])
+            files = save_calibration(calibration, folder, self._calibrated_from["nominal"])
+            files["figure"] = calibration_figure(folder / "report.png", calibration,
+                                                 self._calibrated_from["frames"])
         except OSError as err:
             notify_error(err, "choose a folder you can write to")
             return None

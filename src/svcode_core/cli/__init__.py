@@ -4,11 +4,11 @@ Each sub-command module exposes ``add_parser(subparsers)`` (registers its argume
 sets ``func``) and is listed in :data:`COMMANDS`.
 
 Exit status: 0 on success; 2 for a user error (bad option or input, a file that is
-missing, unreadable or unwritable, a full disk, an unavailable device), reported in one
-line on stderr (``--debug`` shows the traceback instead); 130 when interrupted (Ctrl-C),
-143 when terminated (SIGTERM, e.g. ``kill``): both release the output locks and keep an
-interrupted reconstruction's partial files, to resume; 1 with a traceback for anything else
-(a bug: please report it).
+missing, unreadable or unwritable, a full disk, an unavailable device, an optional part
+not installed), reported in one line on stderr (``--debug`` shows the traceback instead);
+130 when interrupted (Ctrl-C), 143 when terminated (SIGTERM, e.g. ``kill``): both release
+the output locks and keep an interrupted reconstruction's partial files, to resume; 1 with
+a traceback for anything else (a bug: please report it).
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 
 from ..config import ConfigError, SystemConfig, available_presets, load_system
+from ..extras import NotInstalled
 from ..run.allocator import reuse_freed_memory
 
 #: every sub-command and its line in ``svcode --help``; its module is imported only when the
@@ -194,7 +195,8 @@ def _terminate_as_interrupt() -> Iterator[None]:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``svcode`` console script; returns the exit status.
 
-    User errors (:class:`ValueError`, :class:`OSError`) become one line on stderr and exit
+    User errors (:class:`ValueError`, :class:`OSError`,
+    :class:`~svcode_core.extras.NotInstalled`) become one line on stderr and exit
     status 2, an interruption exits with 130, SIGTERM with 143; with ``--debug`` they
     raise. The process
     keeps freed memory for reuse (:func:`~svcode_core.run.allocator.reuse_freed_memory`).
@@ -208,7 +210,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             _check_device(args)
             return int(args.func(args) or 0)
-        except (ValueError, OSError) as err:
+        except (ValueError, OSError, NotInstalled) as err:
             if debug:
                 raise
             print(f"svcode {args.command}: error: {describe_error(err)}", file=sys.stderr)

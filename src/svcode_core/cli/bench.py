@@ -1,18 +1,28 @@
 """``svcode bench``: work–precision benchmark of every method and knob in every regime.
 
-The benchmark itself (scenes, regimes, rows, report) is :mod:`svcode_core.evaluation.bench`.
+The benchmark itself (scenes, regimes, rows, report) is the engine ``svcode_bench.regimes``,
+which is not part of the installed package: it lies beside the benchmark scripts in a
+source checkout's ``bench`` folder (:func:`engine`), so ``svcode bench`` runs from a
+checkout installed with ``pip install -e ".[bench]"``.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
+import sys
 from pathlib import Path
+from types import ModuleType
 
+from ..extras import NotInstalled
 from ..methods.registry import LEARNED_METHODS, METHODS, method
 from . import SUMMARIES, add_progress_argument, add_system_arguments
 
-#: the report a source checkout commits (``bench/results`` beside ``src/``)
-CHECKOUT_RESULTS = Path(__file__).resolve().parents[3] / "bench" / "results"
+#: a source checkout's benchmark folder (``bench`` beside ``src/``): the engine
+#: ``svcode_bench``, the scripts, and the committed report in ``results``
+CHECKOUT_BENCH = Path(__file__).resolve().parents[3] / "bench"
+#: the report a source checkout commits
+CHECKOUT_RESULTS = CHECKOUT_BENCH / "results"
 #: ``--methods``' rows beyond the ``--method`` names: LSV-ADMM's slow end, minutes a frame
 SYSTEM_K = "admm-system-k"
 #: the names ``--methods`` also takes: the benchmark's families (``deconvolution``: Wiener
@@ -24,6 +34,28 @@ _FAMILY = {"svcode": "svcode", "admm": "admm", "wiener": "deconvolution", "rl": 
            **dict.fromkeys(LEARNED_METHODS, "learned"), SYSTEM_K: SYSTEM_K}  # fmt: skip
 #: what ``--methods`` runs when not given
 DEFAULT_METHODS = tuple(METHODS)
+
+
+def engine() -> ModuleType:
+    """The benchmark engine, ``svcode_bench.regimes``: importable as it is, or from the
+    checkout's ``bench`` folder (added to the end of ``sys.path``).
+
+    Raises
+    ------
+    svcode_core.extras.NotInstalled
+        Outside a source checkout, with what to do instead.
+    """
+    try:
+        return importlib.import_module("svcode_bench.regimes")
+    except ModuleNotFoundError as err:
+        if err.name != "svcode_bench":
+            raise
+    if not (CHECKOUT_BENCH / "svcode_bench").is_dir():
+        raise NotInstalled('svcode bench runs the benchmark engine of a source checkout '
+                           '(bench/svcode_bench), not installed with the package: clone the '
+                           'repository and run it there after pip install -e ".[bench]"')
+    sys.path.append(str(CHECKOUT_BENCH))
+    return importlib.import_module("svcode_bench.regimes")
 
 
 def _method_names(text: str) -> tuple[str, ...]:
@@ -44,12 +76,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         + " Writes regimes.{json,md,png} to --out; the checkout's committed report "
         "(bench/results) only when named with --out, and then only a full run or --merge.",
     )
-    # the regimes are those of the benchmark (torch): imported for this command only
-    from ..evaluation.bench import REGIMES
-
+    # the regimes are those of the benchmark (torch): imported for this command only; without
+    # the engine, run() says how to get it
+    try:
+        regimes = list(engine().REGIMES)
+    except NotInstalled:
+        regimes = None
     parser.add_argument("--quick", action="store_true",
                         help="small version: two scenes, fewer knobs, every regime (minutes)")
-    parser.add_argument("--regimes", nargs="+", choices=list(REGIMES), default=list(REGIMES),
+    parser.add_argument("--regimes", nargs="+", choices=regimes, default=regimes,
                         help="instruments the test frames come from (default: all)")
     parser.add_argument("--all-knobs", action="store_true",
                         help="in the matched regime, also SV-CoDe's time-only knobs (mask "
@@ -118,8 +153,8 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from ..config import load_system
-    from ..evaluation import bench
 
+    bench = engine()
     if args.threads < 1:
         raise ValueError(f"--threads must be >= 1 (torch CPU threads), got {args.threads}")
     check_out(args, tuple(bench.REGIMES))

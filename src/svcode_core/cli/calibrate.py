@@ -53,6 +53,7 @@ def run(args: argparse.Namespace) -> int:
     # scipy.stats and scikit-image's feature module: only when calibrating
     import numpy as np
 
+    from ..evaluation.figures import calibration_figure
     from ..io import read_tiff
     from ..physics.calibration import calibrate, read_positions, save_calibration
 
@@ -70,7 +71,8 @@ def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     calibration = calibrate(frames, positions, nominal, dark=dark, tolerance=args.tolerance,
                             saturation=args.saturation)  # fmt: skip
-    files = save_calibration(calibration, args.out, nominal, frames)
+    files = save_calibration(calibration, args.out, nominal)
+    files["figure"] = calibration_figure(args.out / "report.png", calibration, frames)
     seconds = time.perf_counter() - start
     shift = calibration.array_shift
     print(f"calibrated {nominal.name} from {len(frames)} frames in {seconds:.1f} s: array "

@@ -1,5 +1,5 @@
-"""Judging the methods (design.md §6): image metrics (:mod:`.metrics`), model size and
-memory (:mod:`.footprint`), extreme frames (:mod:`.stability`), ghosts of bright isolated
-objects (:mod:`.ghosts`), the outer ring against the centre on the same content
-(:mod:`.field_position`), the benchmark in six regimes (:mod:`.bench`) and figures
-(:mod:`.figures`)."""
+"""Judging reconstructions (design.md §6): image metrics (:mod:`.metrics`, also the
+training's validation) and figures (:mod:`.figures`: the demo's, the calibration
+report's). The benchmark engine (regimes, footprint, stability, ghosts, field position,
+bars and beads) is ``svcode_bench``, beside the benchmark scripts in the checkout's
+``bench`` folder, not part of the installed package."""

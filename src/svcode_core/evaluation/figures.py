@@ -1,19 +1,23 @@
-"""Matplotlib figures of simulations and reconstructions (Agg backend, no display)."""
+"""Matplotlib figures of simulations and reconstructions, drawn off-screen (Agg).
+
+Matplotlib is imported only when a figure is drawn, and pyplot not at all: importing this
+module (the plugin does, for :func:`psf_montage`) changes no backend and loads no
+matplotlib.
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import matplotlib
+import numpy as np
+import torch
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-from matplotlib.patches import Rectangle  # noqa: E402
+from ..config import SystemConfig
+from ..physics.geometry import pad_sensor_frame, sub_view_origins
 
-from ..config import SystemConfig  # noqa: E402
-from ..physics.geometry import pad_sensor_frame, sub_view_origins  # noqa: E402
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 __all__ = ["calibration_figure", "montage", "overview_figure", "psf_montage"]
 
@@ -25,13 +29,29 @@ def montage(views: np.ndarray) -> np.ndarray:
     return views.reshape(3, 3, size, size).transpose(0, 2, 1, 3).reshape(3 * size, 3 * size)
 
 
-def _save(fig: plt.Figure, path: str | Path, dpi: int) -> Path:
-    """Lay out ``fig``, write it to ``path`` (creating its folder) and close it."""
+def _figure(**options) -> Figure:
+    """A new figure on an Agg canvas (no pyplot: no global backend, nothing to close)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(**options)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _tab10(count: int) -> np.ndarray:
+    """``count`` colours of the ``tab10`` colour map, repeating after ten."""
+    import matplotlib
+
+    return matplotlib.colormaps["tab10"](np.arange(count) % 10)
+
+
+def _save(fig: Figure, path: str | Path, dpi: int) -> Path:
+    """Lay out ``fig`` and write it to ``path`` (creating its folder)."""
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=dpi)
-    plt.close(fig)
     return path
 
 
@@ -80,16 +100,18 @@ def overview_figure(
     title : str
         Figure title.
     """
+    from matplotlib.patches import Rectangle
+
     count = 1 + len(panels)
-    fig, axes = plt.subplots(1, count, figsize=(3.6 * count, 4.0), squeeze=False)
-    axes = axes[0]
+    fig = _figure(figsize=(3.6 * count, 4.0))
+    axes = fig.subplots(1, count, squeeze=False)[0]
     padded = pad_sensor_frame(torch.as_tensor(measurement, dtype=torch.float32), system)
     axes[0].imshow(padded.numpy(), cmap="gray")
     rows, cols = system.sensor_window
     axes[0].add_patch(Rectangle((cols.start - 0.5, rows.start - 0.5), cols.stop - cols.start,
                                 rows.stop - rows.start, fill=False, ec="white", ls="--", lw=0.8))
     size = system.sub_view_size
-    colours = plt.cm.tab10(np.arange(9) % 10)
+    colours = _tab10(9)
     for lens, (r0, c0) in enumerate(sub_view_origins(system)):
         axes[0].add_patch(Rectangle((c0 - 0.5, r0 - 0.5), size, size, fill=False,
                                     ec=colours[lens], lw=0.8))
@@ -124,7 +146,8 @@ def calibration_figure(path: str | Path, calibration, frames: np.ndarray) -> Pat
         The scan ``(N, H, W)``; its maximum over frames is the background of panel 1.
     """
     cal = calibration
-    fig, axes = plt.subplots(1, 3, figsize=(13.0, 4.4))
+    fig = _figure(figsize=(13.0, 4.4))
+    axes = fig.subplots(1, 3)
     axes[0].imshow(np.asarray(frames).max(axis=0), cmap="gray")
     measured = cal.centroids.reshape(-1, 2)
     predicted = cal.predicted.reshape(-1, 2)
@@ -133,7 +156,7 @@ def calibration_figure(path: str | Path, calibration, frames: np.ndarray) -> Pat
     axes[0].plot(predicted[:, 1], predicted[:, 0], "+", color="red", ms=4, label="fitted")
     axes[0].legend(loc="lower right", fontsize=7)
     axes[0].set_title("scan (max over frames), spots")
-    colours = plt.cm.tab10(np.arange(9) % 10)
+    colours = _tab10(9)
     residual = cal.centroids - cal.predicted
     for lens in range(9):
         axes[1].plot(residual[:, lens, 1], residual[:, lens, 0], ".", color=colours[lens],

@@ -772,22 +772,22 @@ def report_text(calibration: Calibration, nominal: SystemConfig) -> str:
     return "\n".join(lines) + "\n"
 
 
-def save_calibration(calibration: Calibration, out_dir: str | Path, nominal: SystemConfig,
-                     frames: np.ndarray | None = None) -> dict[str, Path]:  # fmt: skip
+def save_calibration(calibration: Calibration, out_dir: str | Path,
+                     nominal: SystemConfig) -> dict[str, Path]:  # fmt: skip
     """Write the calibrated system and everything it refers to into ``out_dir``.
 
     Files: ``system.json`` (``psf_model`` = ``psfs.tif``, relative), ``psfs.tif`` and
     ``psfs.positions.json`` (:func:`svcode_core.physics.psf_io.save_psfs`), ``calibration.json``
     (fitted chief rays, offsets, array motion, throughput, ranks, the PSF FWHM ``(9, G·G)``
-    in pixels and micrometres), ``report.txt`` and
-    ``report.png`` (:func:`svcode_core.evaluation.figures.calibration_figure`; needs ``frames``).
+    in pixels and micrometres) and ``report.txt``. The report's figure, ``report.png``, is
+    drawn above the physics (:func:`svcode_core.evaluation.figures.calibration_figure`, by
+    ``svcode calibrate`` and the Calibration widget).
 
     Returns
     -------
     dict of str to Path
         The files written, by kind.
     """
-    from ..evaluation.figures import calibration_figure
     from ..io import write_json_atomic
     from .psf_io import save_psfs
 
@@ -819,8 +819,6 @@ def save_calibration(calibration: Calibration, out_dir: str | Path, nominal: Sys
     text = report_text(cal, nominal)
     files["report"] = out / "report.txt"
     files["report"].write_text(text, encoding="utf-8")
-    if frames is not None:
-        files["figure"] = calibration_figure(out / "report.png", cal, np.asarray(frames))
     return files
 
 

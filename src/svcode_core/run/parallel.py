@@ -210,8 +210,17 @@ def dask_client(workers: int = 0, scheduler: str | None = None) -> Iterator[Any]
 
     The local cluster runs ``workers`` processes with one thread each (and one OpenMP
     thread each, so that they do not compete for cores); it is shut down on exit.
+
+    Raises
+    ------
+    svcode_core.extras.NotInstalled
+        Without ``distributed`` (the ``dask`` extra).
     """
-    from distributed import Client, LocalCluster
+    from ..extras import require
+
+    distributed = require("distributed", "dask", "frames on a dask cluster (--workers, "
+                          "--scheduler)")  # fmt: skip
+    Client, LocalCluster = distributed.Client, distributed.LocalCluster
 
     if scheduler:
         with Client(scheduler) as client:

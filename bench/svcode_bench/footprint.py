@@ -25,8 +25,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..config import SystemConfig
-from ..methods.registry import ARCHITECTURES, method_of_architecture
+from svcode_core.config import SystemConfig
+from svcode_core.methods.registry import ARCHITECTURES, method_of_architecture
 
 __all__ = ["Footprint", "PeakMemory", "doubled_system", "model_footprint"]
 
@@ -87,9 +87,9 @@ class Footprint:
 
 def _build(architecture: str, config: Any, system: SystemConfig) -> tuple[nn.Module, Any]:
     """A fresh model of ``architecture`` for ``system`` and a reconstructor around it."""
-    from ..methods.build import build_reconstructor
-    from ..methods.learned import LEARNED_MODELS
-    from ..network import SVCoDe
+    from svcode_core.methods.build import build_reconstructor
+    from svcode_core.methods.learned import LEARNED_MODELS
+    from svcode_core.network import SVCoDe
 
     if architecture in LEARNED_MODELS:
         model = LEARNED_MODELS[architecture](config, system)
@@ -126,7 +126,7 @@ def model_footprint(weights: str | Path, system: SystemConfig) -> Footprint:
     system : SystemConfig
         The field size S it is measured at (and 2S, :func:`doubled_system`).
     """
-    from ..methods.model_file import read_model_metadata
+    from svcode_core.methods.model_file import read_model_metadata
 
     meta = read_model_metadata(weights)
     architecture, config = meta["architecture"], meta["model_config"]

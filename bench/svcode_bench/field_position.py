@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .metrics import _check_pair, field_zones, psnr_from_mse
+from svcode_core.evaluation.metrics import _check_pair, field_zones, psnr_from_mse
 
 __all__ = ["SameContentZones", "half_field_shifts", "moved_scene", "same_content_zones"]
 

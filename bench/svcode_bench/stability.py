@@ -19,10 +19,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..phantoms import make_object
-from ..physics.noise import apply_sensor_noise
-from ..physics.simulate import Simulator
-from .metrics import psnr
+from svcode_core.evaluation.metrics import psnr
+from svcode_core.phantoms import make_object
+from svcode_core.physics.noise import apply_sensor_noise
+from svcode_core.physics.simulate import Simulator
 
 __all__ = ["Case", "run_case", "stability_cases"]
 

@@ -64,22 +64,23 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..config import SystemConfig
-from ..methods import registry
-from ..methods.baselines import LsvAdmm
-from ..methods.baselines.admm import settings_for
-from ..methods.build import build_reconstructor
-from ..methods.model_file import read_model_metadata
-from ..methods.periphery import REFINE_ITERATIONS
-from ..phantoms import HELD_OUT_IMAGES, held_out_image, make_object
-from ..physics.cm2 import CM2Operator
-from ..physics.departures import Departures
-from ..physics.geometry import pad_sensor_frame
-from ..physics.psf_io import model_psfs
-from ..physics.simulate import Simulator
-from ..pretrained import bundled_weights
+from svcode_core.config import SystemConfig
+from svcode_core.evaluation.metrics import CENTRE_RADIUS, RING_RADIUS, image_quality
+from svcode_core.methods import registry
+from svcode_core.methods.baselines import LsvAdmm
+from svcode_core.methods.baselines.admm import settings_for
+from svcode_core.methods.build import build_reconstructor
+from svcode_core.methods.model_file import read_model_metadata
+from svcode_core.methods.periphery import REFINE_ITERATIONS
+from svcode_core.phantoms import HELD_OUT_IMAGES, held_out_image, make_object
+from svcode_core.physics.cm2 import CM2Operator
+from svcode_core.physics.departures import Departures
+from svcode_core.physics.geometry import pad_sensor_frame
+from svcode_core.physics.psf_io import model_psfs
+from svcode_core.physics.simulate import Simulator
+from svcode_core.pretrained import bundled_weights
+
 from .footprint import PeakMemory, model_footprint
-from .metrics import CENTRE_RADIUS, RING_RADIUS, image_quality
 
 SCENES = (
     ("cells", "cells", {}),
@@ -334,7 +335,7 @@ def svcode_rows(
     up once and reused for the scenes of later regimes. ``footprint`` measures the model's
     size and memory at S and 2S (in a subprocess: slow) on the first row.
     """
-    from ..methods.svcode import DEFAULT_MASK_CACHE_BYTES
+    from svcode_core.methods.svcode import DEFAULT_MASK_CACHE_BYTES
 
     patch = system.patch_size
     planned = {"tile": None, "stride": None, "batch": None, "cache": True,

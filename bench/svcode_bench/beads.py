@@ -25,7 +25,7 @@ from scipy import ndimage, optimize, special
 from skimage.feature import peak_local_max
 from skimage.filters import threshold_otsu
 
-from ..phantoms import _render_spots
+from svcode_core.phantoms import _render_spots
 
 __all__ = [
     "BEAD_SIGMA",

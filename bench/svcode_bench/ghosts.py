@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..config import SystemConfig
-from ..physics.simulate import Simulator
+from svcode_core.config import SystemConfig
+from svcode_core.physics.simulate import Simulator
 
 __all__ = ["DIRECTIONS", "GhostReading", "ghost_probe", "lens_pitch"]
 
