@@ -451,7 +451,7 @@ def test_memory_budget_chunks_the_operator_not_the_result(tiny_system):
 
 # ------------------------------------------------------------------ benchmark
 def test_benchmark_rows_and_outputs(tiny_system, tiny_op, tmp_path):
-    from svcode_core.evaluation.bench import (
+    from svcode_bench.regimes import (
         Scene,
         admm_rows,
         deconvolution_rows,
@@ -480,7 +480,7 @@ def test_benchmark_rows_and_outputs(tiny_system, tiny_op, tmp_path):
 
 def test_benchmark_labels_and_scores_an_ablation_model(tiny_system, tiny_op, tiny_model_config,
                                                       tmp_path):
-    from svcode_core.evaluation.bench import Scene, model_label, run_benchmark, svcode_rows
+    from svcode_bench.regimes import Scene, model_label, run_benchmark, svcode_rows
     from svcode_core.methods.model_file import save_model
     from svcode_core.network import SVCoDe
 

@@ -1,3 +1,4 @@
+import re
 from pathlib import Path
 
 import numpy as np
@@ -173,3 +174,72 @@ def test_option_errors_name_the_option_as_given(system_json, tmp_path, capsys, c
     assert err.count("\n") == 1 and f"svcode {command}: error: {message}" in err, err
     assert "_" not in err.split("error: ")[1].split(":")[0]
     assert not (tmp_path / "out").exists()
+
+
+# ------------------------------------------------- the methods' options, from their tables
+def _reconstruct_parser():
+    import argparse
+
+    from svcode_core.cli import build_parser
+
+    parser = build_parser()
+    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return commands.choices["reconstruct"]
+
+
+def _table():
+    from svcode_core.methods import registry
+
+    return [(name, option) for name in registry.METHODS
+            for option in registry.method(name).options]  # fmt: skip
+
+
+def _sample(option):
+    """A value of ``option`` other than its default."""
+    if option.kind is bool:
+        return not option.default
+    if option.choices:
+        return next(choice for choice in option.choices if choice != option.default)
+    if option.flag_scale != 1:
+        return 3 * option.flag_scale
+    return option.kind(int(option.minimum or 0) + 2)
+
+
+def test_every_method_option_has_a_flag_made_from_its_table():
+    """Each option of each method's table has its ``svcode reconstruct`` flag (and no flag
+    is a method's without an option), with the table's help and default."""
+    parser = _reconstruct_parser()
+    groups = [group for group in parser._action_groups
+              if (group.title or "").startswith("options of --method")]  # fmt: skip
+    flags = {flag for group in groups for action in group._group_actions
+             for flag in action.option_strings}  # fmt: skip
+    assert flags == {option.flag for _, option in _table()}
+    text = "".join(parser.format_help().split())  # the help wraps lines at spaces and hyphens
+    for name, option in _table():
+        assert "".join(option.describe().split()) in text, (name, option.name)
+        if option.default is not None and "{default}" in option.help:
+            shown = option.default
+            if option.flag_scale != 1:  # in the flag's units
+                shown //= option.flag_scale
+            shown = f"{shown:g}" if isinstance(shown, float) else str(shown)
+            assert f"default{shown}" in text.replace(":", ""), (name, option.name)
+
+
+@pytest.mark.parametrize(("method", "option"), _table(), ids=lambda v: getattr(v, "name", v))
+def test_a_flag_gives_its_option_and_is_checked_by_the_table(method, option):
+    """A value round-trips through its flag (units converted), and a value out of the
+    table's bounds is refused naming the flag, with the table's words."""
+    from svcode_core.cli.reconstruct import check_options, method_options
+
+    parser = _reconstruct_parser()
+    head = ["in.tif", "--out", "out.tif", "--method", method]
+    value = _sample(option)
+    args = parser.parse_args([*head, *option.to_flag(value)])
+    assert method_options(args) == {option.name: value}
+    if option.minimum is None:
+        return
+    below = str(int(option.minimum) - 1)
+    args = parser.parse_args([*head, option.flag, below])
+    expected = f"{option.flag} must be {option.words(flag=True)}, got {below}"
+    with pytest.raises(ValueError, match=f"^{re.escape(expected)}$"):
+        check_options(args)

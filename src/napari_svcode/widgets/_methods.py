@@ -1,9 +1,12 @@
 """The method chooser of the Reconstruct widget: a method and its own options.
 
 Every method of ``svcode reconstruct --method`` is offered
-(:data:`svcode_core.methods.METHODS`); only the chosen method's options are shown. The
-panel turns its values into the keyword arguments of
-:func:`svcode_core.methods.build_reconstructor` and estimates what a run would cost.
+(:data:`svcode_core.methods.METHODS`); only the chosen method's options are shown. Their
+widgets are made from the methods' tables of options
+(:class:`svcode_core.methods.registry.Option`: label, bounds, default, help as tooltip;
+the advanced options are flags of ``svcode reconstruct`` only). The panel turns its values
+into the keyword arguments of :func:`svcode_core.methods.build_reconstructor` and estimates
+what a run would cost from the core's tiling (:func:`svcode_core.methods.svcode.tile_plan`).
 """
 
 from __future__ import annotations
@@ -15,18 +18,14 @@ from typing import Any
 
 import psutil
 from magicgui.widgets import CheckBox, ComboBox, Container, FileEdit, FloatSpinBox, SpinBox
+from magicgui.widgets.bases import ValueWidget
 
 from svcode_core.config import SystemConfig
-from svcode_core.methods import (
-    LEARNED_METHODS,
-    METHOD_TITLES,
-    METHODS,
-    reconstructor_defaults,
-    registry,
-)
-from svcode_core.methods.baselines import AdmmSettings
-from svcode_core.methods.tiling import TileGrid
+from svcode_core.methods import LEARNED_METHODS, METHOD_TITLES, METHODS, registry
+from svcode_core.methods.registry import SVCODE, Option
+from svcode_core.methods.svcode import tile_plan
 
+from .._resources import cached_model
 from ._choosers import ModelChooser
 
 __all__ = ["Cost", "MethodPanel"]
@@ -41,26 +40,8 @@ GPU_SPEED_UP = 20.0
 LONG_RUN_SECONDS = 15 * 60
 #: runs estimated to need more than this share of the free memory ask first
 MEMORY_SHARE = 0.8
-
-_ADMM = registry.method("admm").defaults
-_WIENER = registry.method("wiener").defaults
-
-
-#: the model-based methods' options that have a widget here
-_BASELINE_WIDGETS = ("rank", "iterations", "tv_weight", "balance", "boundary")
-
-
-def _option_widgets(name: str) -> tuple[str, ...]:
-    """The option widgets method ``name`` shows, in order."""
-    if name in registry.MODEL_BASED_METHODS:
-        return ("precision", *(o for o in registry.method(name).options if o in _BASELINE_WIDGETS))
-    if name in LEARNED_METHODS:
-        return ("weights", "precision")
-    return ("model", "precision", "tile", "batch", "skip", "refine")
-
-
-_OPTIONS = {name: _option_widgets(name) for name in METHODS}
-_PRECISIONS = {name: registry.method(name).precisions for name in METHODS}
+#: the largest whole number and number an option widget offers, and a number's step
+WHOLE_MAX, NUMBER_MAX, NUMBER_STEP = 100_000, 10.0, 1e-5
 
 
 @dataclass
@@ -76,7 +57,7 @@ class Cost:
         available = psutil.virtual_memory().available
         if self.memory > MEMORY_SHARE * available:
             return (f"needs about {self.memory / 2**30:.1f} GiB, {available / 2**30:.1f} GiB "
-                    f"free ({self.detail})")
+                    f"free ({self.detail})")  # fmt: skip
         if self.seconds > LONG_RUN_SECONDS:
             return f"would take about {_duration(self.seconds)} ({self.detail})"
         return None
@@ -88,8 +69,56 @@ def _duration(seconds: float) -> str:
     return f"{math.ceil(seconds / 60)} min"
 
 
+def _key(option: Option) -> str:
+    """The panel's name of the widget of ``option``."""
+    return option.widget or option.name
+
+
+def _auto_key(option: Option) -> str:
+    """The name of the tick box of an option that also takes ``"auto"`` (``tv_auto``)."""
+    return _key(option).split("_")[0] + "_auto"
+
+
+def _zero_is_default(option: Option) -> bool:
+    """Whether the widget of a whole-number option offers 0 for "the default": where 0 is
+    no value of the option."""
+    return option.kind is int and option.minimum is not None and option.minimum >= 1
+
+
+def _start(option: Option) -> Any:
+    """The value the widget of ``option`` shows at first: its default."""
+    if option.kind is float and not isinstance(option.default, float):
+        return option.fixed  # a word ("auto") is the tick box's
+    if _zero_is_default(option) and (option.default is None or option.ceiling):
+        return 0
+    return option.default
+
+
+def _tooltip(option: Option) -> str:
+    return option.describe() + ("; 0: the default" if _zero_is_default(option) else "")
+
+
+def _option_widget(option: Option) -> ValueWidget:
+    """The widget of ``option``, at its default, its help as tooltip."""
+    common = {"name": _key(option), "tooltip": _tooltip(option)}
+    if option.kind is bool:
+        return CheckBox(text=option.label, value=option.default, **common)
+    if option.choices:
+        return ComboBox(label=option.label, choices=list(option.choices),
+                        value=option.default, **common)  # fmt: skip
+    if option.kind is int:
+        low = 0 if _zero_is_default(option) else int(option.minimum or 0)
+        return SpinBox(label=option.label, min=low, max=WHOLE_MAX, value=_start(option),
+                       **common)  # fmt: skip
+    return FloatSpinBox(label=option.label, min=float(option.minimum or 0.0), max=NUMBER_MAX,
+                        step=NUMBER_STEP, value=_start(option), **common)  # fmt: skip
+
+
 class MethodPanel(Container):
     """A method and its options; only the chosen method's options are visible.
+
+    Each option widget is named as the option's ``widget`` in its table (e.g. ``tile``,
+    ``iterations``; ``tv_auto`` ticks ``"auto"``) and reached as an attribute.
 
     Parameters
     ----------
@@ -100,100 +129,88 @@ class MethodPanel(Container):
     """
 
     def __init__(self, label: str = "method", method: str = "svcode") -> None:
-        defaults = reconstructor_defaults()
-        self.method = ComboBox(label=label, value=method,
-                               choices=[(METHOD_TITLES[name], name) for name in METHODS],
-                               tooltip="the reconstruction method (svcode reconstruct --method)")
+        self.method = ComboBox(
+            label=label,
+            value=method,
+            choices=[(METHOD_TITLES[name], name) for name in METHODS],
+            tooltip="the reconstruction method (svcode reconstruct --method)",
+        )
         self.model = ModelChooser()
-        self.weights = FileEdit(label="model file", mode="r", filter="*.safetensors",
-                                tooltip="a model trained with svcode train --method ...")
-        self.precision = ComboBox(label="precision", choices=list(_PRECISIONS["svcode"]))
-        self.tile = SpinBox(label="tile size", min=0, max=8192,
-                            value=defaults.get("tile_size") or 0,
-                            tooltip="tile side P in pixels; 0: planned by the core "
-                                    "(the whole sub-view when it fits in memory)")
-        batch = defaults.get("batch_size")
-        self.batch = SpinBox(label="batch size", min=0, max=1024,
-                             value=batch if isinstance(batch, int) else 0,
-                             tooltip="tiles per model call (more: faster, more memory); "
-                                     "0: the core's default")
-        self.skip = CheckBox(text="skip empty tiles", value=defaults["skip_empty"],
-                             tooltip="do not run tiles without signal above the noise")
-        self.refine = SpinBox(label="refine periphery", min=0, max=1000,
-                              value=defaults["refine_periphery"],
-                              tooltip="LSV-ADMM iterations that refine the outer ring and edge "
-                                      "strips from the network's reconstruction (10: higher "
-                                      "held-out scores for 2–3× the time); 0: none")
-        self.rank = SpinBox(label="rank K", min=0, max=1024, value=0,
-                            tooltip="low-rank order of the forward model; 0: "
-                                    f"{registry.DEFAULT_RANK}, or the system's K when smaller "
-                                    "(the system's K: a fraction of a dB, many times slower)")
-        self.iterations = SpinBox(label="iterations", min=1, max=100_000, value=1)
-        self.tv_weight = FloatSpinBox(label="TV weight λ", min=0.0, max=10.0, step=1e-5,
-                                      value=AdmmSettings().tv_weight,
-                                      tooltip="total-variation weight of LSV-ADMM")
-        self.tv_auto = CheckBox(text="λ from each frame's noise",
-                                value=_ADMM["tv_weight"] == "auto",
-                                tooltip="set λ from the frame's estimated noise and mean "
-                                        "level (better for dim, few-photon frames)")
-        self.tv_auto.changed.connect(lambda auto: setattr(self.tv_weight, "enabled", not auto))
-        self.tv_weight.enabled = not self.tv_auto.value
-        self.balance = FloatSpinBox(label="balance", min=0.0, max=10.0, step=1e-4,
-                                    value=_WIENER["balance"],
-                                    tooltip="Laplacian regularisation weight of the Wiener "
-                                            "filter")
-        self.boundary = ComboBox(label="boundary", choices=["reflect", "periodic"],
-                                 value=_WIENER["boundary"],
-                                 tooltip="how the Wiener filter treats a view's edges")
+        self.weights = FileEdit(
+            label="model file",
+            mode="r",
+            filter="*.safetensors",
+            tooltip="a model trained with svcode train --method ...",
+        )
+        self.precision = ComboBox(
+            label="precision", choices=list(registry.method(method).precisions)
+        )
         self._widgets = {"model": self.model, "weights": self.weights,
-                         "precision": self.precision, "tile": self.tile, "batch": self.batch,
-                         "skip": self.skip, "refine": self.refine, "rank": self.rank,
-                         "iterations": self.iterations,
-                         "tv_weight": self.tv_weight, "tv_auto": self.tv_auto,
-                         "balance": self.balance, "boundary": self.boundary}
+                         "precision": self.precision}  # fmt: skip
+        #: widget name → the option whose value it shows
+        self._shows: dict[str, Option] = {}
+        for name in METHODS:  # one widget per name, shared by the methods (rank)
+            for option in registry.method(name).options:
+                if option.advanced or _key(option) in self._widgets:
+                    continue
+                widget = self._widgets[_key(option)] = _option_widget(option)
+                self._shows[_key(option)] = option
+                if option.auto:
+                    box = CheckBox(
+                        name=_auto_key(option),
+                        text=option.auto,
+                        value=option.default == "auto",
+                        tooltip=option.describe(),
+                    )
+                    box.changed.connect(lambda on, w=widget: setattr(w, "enabled", not on))
+                    widget.enabled = not box.value
+                    self._widgets[_auto_key(option)] = box
         super().__init__(widgets=[self.method, *self._widgets.values()], labels=True)
         self.margins = (0, 0, 0, 0)
-        self._system = SystemConfig.preset("cm2-mini")
         self.method.changed.connect(self._show_options)
         self._show_options(self.method.value)
 
     # ---------------------------------------------------------------- showing
+    def _shown(self, method: str) -> list[str]:
+        """The widgets of ``method``, in order."""
+        entry = registry.method(method)
+        names = ["model"] if entry.family == SVCODE else ["weights"] if entry.needs_weights else []
+        names.append("precision")
+        for option in entry.options:
+            if not option.advanced:
+                names += [_key(option), *([_auto_key(option)] if option.auto else [])]
+        return names
+
     def _show_options(self, method: str) -> None:
-        shown = _OPTIONS[method]
+        shown = self._shown(method)
         for name, widget in self._widgets.items():
             widget.visible = name in shown
-        self.tv_auto.visible = "tv_weight" in shown
-        self.precision.choices = list(_PRECISIONS[method])
-        self.precision.value = "fp32"
-        self.set_system(self._system)
-
-    def set_system(self, system: SystemConfig) -> None:
-        """Show the chosen method's iteration count (its default, the same for every
-        system: :mod:`svcode_core.methods.registry`)."""
-        self._system = system
-        if "iterations" in registry.method(self.method.value).options:
-            self.iterations.value = registry.method(self.method.value).defaults["iterations"]
+        entry = registry.method(method)
+        for option in entry.options:  # a widget another method's option showed: this one's
+            if not option.advanced and self._shows[_key(option)] != option:
+                widget = self._widgets[_key(option)]
+                widget.value, widget.tooltip = _start(option), _tooltip(option)
+                self._shows[_key(option)] = option
+        self.precision.choices = list(entry.precisions)
+        self.precision.value = entry.precisions[0]
 
     # ---------------------------------------------------------------- values
     def options(self) -> dict[str, Any]:
         """Keyword arguments of :func:`~svcode_core.methods.build_reconstructor` (without
-        ``device``, ``weights`` and ``model``)."""
-        method = self.method.value
-        values = {"precision": self.precision.value}
-        if method == "svcode":
-            values.update(tile_size=self.tile.value or None, skip_empty=self.skip.value)
-            if self.batch.value:  # else the core's default
-                values["batch_size"] = self.batch.value
-            if self.refine.value:
-                values["refine_periphery"] = self.refine.value
-        elif method in registry.MODEL_BASED_METHODS:
-            values["rank"] = self.rank.value or None
-            shown = {"iterations": self.iterations, "tv_weight": self.tv_weight,
-                     "balance": self.balance, "boundary": self.boundary}  # fmt: skip
-            values.update({option: shown[option].value
-                           for option in registry.method(method).options if option in shown})
-            if "tv_weight" in values and self.tv_auto.value:
-                values["tv_weight"] = "auto"
+        ``device``, ``weights`` and ``model``): the shown options' values (``None``: the
+        default; an option at 0 that is 0 by default, e.g. no refinement, is left out)."""
+        values: dict[str, Any] = {"precision": self.precision.value}
+        for option in registry.method(self.method.value).options:
+            if option.advanced:
+                continue
+            value = self._widgets[_key(option)].value
+            if option.auto and self._widgets[_auto_key(option)].value:
+                value = "auto"
+            elif option.kind is int and value == 0 and _zero_is_default(option):
+                value = None
+            elif option.kind is int and value == 0 == option.default:
+                continue
+            values[option.name] = value
         return values
 
     def weights_path(self, system_name: str | None = None) -> Path | None:
@@ -213,32 +230,48 @@ class MethodPanel(Container):
             return path if path.is_file() else None
         return None
 
+    def _model(self, system: SystemConfig) -> Any:
+        """SV-CoDe's model for ``system`` (what the run loads, cached), ``None`` when it
+        cannot be loaded (the run says why)."""
+        try:
+            return cached_model(self.weights_path(system.name), system)[0]
+        except (OSError, ValueError):
+            return None
+
     def cost(self, system: SystemConfig, frames: int, device: str, views: bool) -> Cost:
-        """Rough time and memory of reconstructing ``frames`` frames of ``system``."""
-        method, size = self.method.value, system.sub_view_size
+        """Rough time and memory of reconstructing ``frames`` frames of ``system``: SV-CoDe's
+        tiles and working memory as the core plans them (:func:`tile_plan`)."""
+        entry, options = registry.method(self.method.value), self.options()
+        size = system.sub_view_size
         speed = 1.0 if device == "cpu" else GPU_SPEED_UP
         memory = frames * size * size * 4 * (10 if views else 1)
-        if method == "svcode":
-            tile = self.tile.value or system.patch_size
-            stride = system.patch_stride if not self.tile.value else max(tile // 2, 1)
+        per_iteration = SECONDS_PER_ITERATION * (size / 384) ** 2 / speed
+        if entry.family == SVCODE:
             try:
-                per_frame = len(TileGrid(size, tile, stride))
+                plan = tile_plan(
+                    self._model(system),
+                    system,
+                    options["precision"],
+                    options.get("tile_size"),
+                    None,
+                    options.get("batch_size"),
+                )
             except ValueError:  # the core refuses the tile size when the run starts
                 return Cost(0.0, memory, "")
+            per_frame = len(plan.grid)
             tiles = per_frame * frames
-            seconds = tiles * SECONDS_PER_TILE * max(1.0, (tile / 96) ** 2) / speed
-            memory += reconstructor_defaults()["mask_cache_bytes"]
-            detail = f"{tiles:,} tiles" if frames == 1 else (
-                f"{tiles:,} tiles: {per_frame:,} a frame × {frames} frames")
-            if self.refine.value:
-                iterations = self.refine.value * frames
-                seconds += iterations * SECONDS_PER_ITERATION * (size / 384) ** 2 / speed
-                detail += f" and {iterations:,} refinement iterations"
+            seconds = tiles * SECONDS_PER_TILE * max(1.0, (plan.grid.patch / 96) ** 2) / speed
+            memory += entry.defaults["mask_cache_bytes"] + plan.working_bytes
+            detail = f"{tiles:,} tile{'s' * (tiles > 1)}" if frames == 1 else (
+                f"{tiles:,} tiles: {per_frame:,} a frame × {frames} frames")  # fmt: skip
+            refine = options.get("refine_periphery", 0) * frames
+            if refine:
+                seconds += refine * per_iteration
+                detail += f" and {refine:,} refinement iterations"
             return Cost(seconds, memory, detail)
-        if "iterations" in registry.method(method).options:
-            iterations = self.iterations.value * frames
-            seconds = iterations * SECONDS_PER_ITERATION * (size / 384) ** 2 / speed
-            return Cost(seconds, memory, f"{iterations:,} iterations")
+        if "iterations" in options:
+            iterations = (options["iterations"] or entry.defaults["iterations"]) * frames
+            return Cost(iterations * per_iteration, memory, f"{iterations:,} iterations")
         return Cost(0.1 * frames, memory, f"{frames} frames")
 
     def describe(self) -> str:

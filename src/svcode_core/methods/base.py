@@ -88,8 +88,10 @@ def precision_dtype(precision: str, method_name: str, reason: str = "") -> torch
     if precision not in entry.precisions:
         known = " or ".join(entry.precisions)
         if precision in PRECISIONS:
-            raise ValueError(f"precision: {precision} is not supported by {entry.title}"
-                             f"{' (' + reason + ')' if reason else ''}; use {known}")
+            raise ValueError(
+                f"precision: {precision} is not supported by {entry.title}"
+                f"{' (' + reason + ')' if reason else ''}; use {known}"
+            )
         raise ValueError(f"precision: {precision!r} is not one of {known}")
     return PRECISIONS[precision]
 
@@ -124,8 +126,10 @@ def check_frame_shape(shape: tuple[int, ...], system: SystemConfig) -> None:
     if tuple(shape) == tuple(system.padded_shape):
         hint = " (this is the padded size: pass the raw, unpadded sensor frame)"
     elif len(shape) == 2 and shape[-1] in (3, 4):
-        hint = (" (a colour image, read as a stack of its rows? a CM² frame is grey: one "
-                "value per sensor pixel)")
+        hint = (
+            " (a colour image, read as a stack of its rows? a CM² frame is grey: one "
+            "value per sensor pixel)"
+        )
     raise ValueError(
         f"frame is {got} pixels but system {system.name!r} expects raw sensor frames of "
         f"{expected[0]}×{expected[1]}{hint}; check that the system configuration "
@@ -198,6 +202,20 @@ class BaseReconstructor(ABC):
     #: (nothing is carried from frame to frame and shared caches are locked), one CPU
     #: thread each (:func:`svcode_core.run.parallel.local_frames`)
     frames_side_by_side: bool = False
+
+    @classmethod
+    def build(
+        cls,
+        method: str,
+        system: SystemConfig | None,
+        weights: Any = None,
+        model: Any = None,
+        **options: Any,
+    ) -> BaseReconstructor:
+        """The reconstructor of ``method``, one this class runs, for ``system``: the work of
+        :func:`~svcode_core.methods.build.build_reconstructor` (the registry names the class
+        of each method, :func:`~svcode_core.methods.registry.reconstructor_class`)."""
+        raise NotImplementedError(f"{cls.__name__} is built by its constructor")
 
     def check_frames(self, frames: Any) -> np.ndarray:
         """The input as a ``(T, H, W)`` array (a view where possible), checked for type,
@@ -281,8 +299,10 @@ class FrameByFrame(BaseReconstructor):
     ) -> Generator[FrameProgress, None, ReconstructionResult]:
         if return_views and not self.has_views:
             title = registry.method(self.method).title
-            raise ValueError(f"{title} reconstructs the object directly and has no demixed "
-                             "views; use --method svcode (or a model-based baseline) for views")
+            raise ValueError(
+                f"{title} reconstructs the object directly and has no demixed "
+                "views; use --method svcode (or a model-based baseline) for views"
+            )
         single = np.ndim(frames) == 2
         stack = self.check_frames(frames)
         start = time.perf_counter()
@@ -319,5 +339,8 @@ class FrameByFrame(BaseReconstructor):
             recon = recon[0]
             view_array = None if view_array is None else view_array[0]
         return ReconstructionResult(
-            recon, view_array, timings={"total": time.perf_counter() - start},
-            exposure_gains=None if gains[0] is None else np.array(gains))
+            recon,
+            view_array,
+            timings={"total": time.perf_counter() - start},
+            exposure_gains=None if gains[0] is None else np.array(gains),
+        )

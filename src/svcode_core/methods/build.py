@@ -13,7 +13,8 @@ benchmark, a notebook) never repeats the dispatch over methods:
   :class:`~svcode_core.methods.svcode.Reconstructor` (read from its signature);
 * :func:`cli_arguments` gives the ``svcode reconstruct`` flags of a method and options.
 
-The names come from :mod:`svcode_core.methods.registry`.
+The names, the class of each method and the table of its options come from
+:mod:`svcode_core.methods.registry`.
 """
 
 from __future__ import annotations
@@ -29,16 +30,7 @@ import torch
 from ..config import SystemConfig
 from . import registry
 from .base import BaseReconstructor, FrameProgress, ReconstructionResult
-from .baselines import BaselineReconstructor
-from .learned.reconstruct import LearnedReconstructor
-from .registry import (
-    LEARNED_METHODS,
-    METHOD_TITLES,
-    METHODS,
-    MODEL_BASED_METHODS,
-    OPTION_FLAGS,
-    check_method,
-)
+from .registry import LEARNED_METHODS, METHOD_TITLES, METHODS, MODEL_BASED_METHODS, check_method
 from .svcode import Reconstructor
 
 __all__ = [
@@ -54,10 +46,8 @@ __all__ = [
     "reconstructor_defaults",
 ]
 
-#: options of :func:`build_reconstructor` with a flag for every method (the tiling ones
-#: are refused by the methods that do not tile)
-_COMMON_OPTIONS = ("weights", "device", "precision", "tile_size", "stride", "batch_size",
-                   "skip_empty", "mask_cache_bytes")  # fmt: skip
+#: the options of every method, besides those of its table, and their flags
+_COMMON_FLAGS = {"weights": "--weights", "device": "--device", "precision": "--precision"}
 
 
 def reconstructor_defaults() -> dict[str, Any]:
@@ -100,25 +90,8 @@ def build_reconstructor(
     FileNotFoundError
         No bundled SV-CoDe model for ``system``.
     """
-    check_method(method)
-    if method in MODEL_BASED_METHODS:
-        if system is None:
-            raise ValueError(f"{METHOD_TITLES[method]} needs the system configuration")
-        return BaselineReconstructor(method, system, **options)
-    if method in LEARNED_METHODS:
-        if weights is None and model is None:
-            raise ValueError(f"{METHOD_TITLES[method]} needs a trained model file: none is "
-                             f"bundled; train one with `svcode train --method {method}`")
-        if model is not None:
-            return LearnedReconstructor(model, system, **options)
-        return LearnedReconstructor.from_weights(weights, system, method, **options)
-    if model is not None:
-        return Reconstructor(model, system, **options)
-    if weights is None:
-        from ..pretrained import require_bundled_weights
-
-        weights = require_bundled_weights(system)
-    return Reconstructor.from_weights(weights, system, **options)
+    cls = registry.reconstructor_class(method)  # the registry's class of the method
+    return cls.build(method, system, weights, model, **options)
 
 
 @dataclass(frozen=True)
@@ -202,25 +175,25 @@ def cli_arguments(method: str, weights: str | Path | None = None, **options: Any
     """The ``svcode reconstruct`` flags that select ``method`` with ``options``.
 
     ``options`` are named as for :func:`build_reconstructor`; ``None`` values are left out
-    (the command line's default applies).
+    (the command line's default applies). The flags come from the method's table
+    (:class:`~svcode_core.methods.registry.Option`).
 
     Examples
     --------
     >>> cli_arguments("admm", iterations=50, tv_weight=1e-3)
     ['--method', 'admm', '--iterations', '50', '--tv-weight', '0.001']
+    >>> cli_arguments("svcode", skip_empty=False, mask_cache_bytes=0)
+    ['--method', 'svcode', '--no-skip', '--mask-cache', '0']
     """
-    accepted = {*_COMMON_OPTIONS, *registry.method(method).options}
+    table = {option.name: option for option in registry.method(method).options}
     arguments = ["--method", method]
     for name, value in {"weights": weights, **options}.items():
         if value is None:
             continue
-        if name not in accepted:
-            raise ValueError(f"{method}: option {name!r} has no `svcode reconstruct` flag")
-        if name == "skip_empty":
-            arguments += [] if value else [OPTION_FLAGS[name]]
-        elif name == "mask_cache_bytes":
-            arguments += [OPTION_FLAGS[name], str(int(value) >> 20)]
+        if name in _COMMON_FLAGS:
+            arguments += [_COMMON_FLAGS[name], str(value)]
+        elif name in table:
+            arguments += table[name].to_flag(value)
         else:
-            text = f"{value:g}" if isinstance(value, float) else str(value)
-            arguments += [OPTION_FLAGS[name], text]
+            raise ValueError(f"{method}: option {name!r} has no `svcode reconstruct` flag")
     return arguments

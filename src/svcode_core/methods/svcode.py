@@ -37,7 +37,7 @@ import time
 import warnings
 from collections.abc import Generator
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -45,6 +45,7 @@ import torch
 from ..config import DEFAULT_MEMORY_BUDGET, SystemConfig
 from ..physics.geometry import context_views, extract_sub_views, pad_sensor_frame
 from ..physics.noise import noise_floor
+from . import registry
 from .base import (
     PRECISIONS,
     BaseReconstructor,
@@ -65,9 +66,11 @@ from .tiling import (
     tiles_with_signal,
 )
 
-__all__ = ["Reconstructor", "plan_tiles"]
+__all__ = ["Reconstructor", "TilePlan", "plan_tiles", "tile_plan"]
 
-DEFAULT_MASK_CACHE_BYTES = DEFAULT_MEMORY_BUDGET
+_SVCODE = registry.method("svcode")
+_DEFAULTS = _SVCODE.defaults
+DEFAULT_MASK_CACHE_BYTES = _DEFAULTS["mask_cache_bytes"]
 DEFAULT_TILE_MEMORY_BYTES = DEFAULT_MEMORY_BUDGET
 
 
@@ -123,6 +126,57 @@ def plan_tiles(
     return side, max(side - overlap, 1), batch
 
 
+class TilePlan(NamedTuple):
+    """The tiles a :class:`Reconstructor` runs: ``grid``, ``batch_size`` and the estimated
+    ``working_bytes`` of one batch (0 for a model that does not say)."""
+
+    grid: TileGrid
+    batch_size: int
+    working_bytes: int
+
+
+def tile_plan(
+    model: torch.nn.Module | None,
+    system: SystemConfig,
+    precision: str = "fp32",
+    tile_size: int | None = None,
+    stride: int | None = None,
+    batch_size: int | None = None,
+    tile_memory_bytes: int = DEFAULT_TILE_MEMORY_BYTES,
+) -> TilePlan:
+    """The tiling of :class:`Reconstructor` (its arguments of the same names; a ``None``
+    is planned): what ``svcode reconstruct`` and the plugin run and estimate.
+
+    Without ``tile_size``, an SV-CoDe model's tiles come from :func:`plan_tiles` and other
+    models (or ``None``) take ``system.patch_size``; a given tile is strided by half.
+
+    Examples
+    --------
+    >>> system = SystemConfig.preset("cm2-mini")
+    >>> plan = tile_plan(None, system, tile_size=7)
+    >>> len(plan.grid), plan.grid.stride, plan.batch_size
+    (16129, 3, 8)
+    """
+    planned_batch = 8
+    if tile_size is None and hasattr(model, "working_bytes_per_pixel"):
+        tile_size, planned, planned_batch = plan_tiles(
+            model, system.sub_view_size, tile_memory_bytes, PRECISIONS[precision]
+        )
+        stride = planned if stride is None else stride
+    elif tile_size is None:
+        tile_size = system.patch_size
+        stride = system.patch_stride if stride is None else stride
+    elif stride is None:
+        stride = max(tile_size // 2, 1)
+    grid = TileGrid(system.sub_view_size, tile_size, stride)
+    batch_size = planned_batch if batch_size is None else batch_size
+    working = 0
+    if hasattr(model, "working_bytes_per_pixel"):
+        side = math.ceil(tile_size / model.stride) * model.stride
+        working = batch_size * side**2 * model.working_bytes_per_pixel(PRECISIONS[precision])
+    return TilePlan(grid, batch_size, working)
+
+
 def _relay(
     tiled: Generator[TileProgress, None, Any], index: int, count: int
 ) -> Generator[FrameProgress, None, Any]:
@@ -141,6 +195,10 @@ def _relay(
 
 class Reconstructor(BaseReconstructor):
     """Tiled SV-CoDe reconstruction of raw CM² frames.
+
+    Its options with a ``svcode reconstruct`` flag (``tile_size`` to ``refine_periphery``)
+    take their defaults and checks from the method's table
+    (:mod:`~svcode_core.methods.registry`); the tiling is :func:`tile_plan`'s.
 
     Parameters
     ----------
@@ -217,12 +275,12 @@ class Reconstructor(BaseReconstructor):
         tile_size: int | None = None,
         stride: int | None = None,
         batch_size: int | None = None,
-        skip_empty: bool = True,
+        skip_empty: bool = _DEFAULTS["skip_empty"],
         skip_factor: float = DEFAULT_SKIP_FACTOR,
         mask_cache_bytes: int = DEFAULT_MASK_CACHE_BYTES,
         tile_memory_bytes: int = DEFAULT_TILE_MEMORY_BYTES,
         pool_window: int | None = None,
-        refine_periphery: int = 0,
+        refine_periphery: int = _DEFAULTS["refine_periphery"],
         normalise_exposure: bool = True,
     ) -> None:
         if not isinstance(system, SystemConfig):
@@ -233,48 +291,37 @@ class Reconstructor(BaseReconstructor):
         if precision == "fp16" and self.device.type == "cpu":
             raise ValueError("precision: fp16 is not supported on the CPU; use bf16 or fp32")
         self.precision = precision
-        planned_batch = 8
-        if tile_size is None and hasattr(model, "working_bytes_per_pixel"):
-            dtype = PRECISIONS[precision]
-            tile_size, planned, planned_batch = plan_tiles(
-                model, system.sub_view_size, tile_memory_bytes, dtype)
-            stride = planned if stride is None else stride
-        elif tile_size is None:
-            tile_size = system.patch_size
-            stride = system.patch_stride if stride is None else stride
-        elif stride is None:
-            stride = max(tile_size // 2, 1)
-        self.grid = TileGrid(system.sub_view_size, tile_size, stride)
-        batch_size = planned_batch if batch_size is None else batch_size
-        if not isinstance(batch_size, int) or batch_size < 1:
-            raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
-        self.batch_size = batch_size
+        _SVCODE.check({"tile_size": tile_size, "stride": stride, "batch_size": batch_size,
+                       "pool_window": pool_window})  # fmt: skip
+        for name, value in (("skip_empty", skip_empty), ("mask_cache_bytes", mask_cache_bytes),
+                            ("refine_periphery", refine_periphery)):  # fmt: skip
+            _SVCODE.option(name).check(value)  # None refused: these have a default
+        plan = tile_plan(model, system, precision, tile_size, stride, batch_size,
+                         tile_memory_bytes)  # fmt: skip
+        self.grid, self.batch_size = plan.grid, plan.batch_size
         if not math.isfinite(skip_factor) or skip_factor < 0:
             raise ValueError(f"skip_factor must be a finite number >= 0, got {skip_factor!r}")
         self.skip_empty = skip_empty
         self.skip_threshold = system.noise.dark_offset + skip_factor * noise_floor(system.noise)
         self.model = model.to(self.device).eval()
         config = getattr(model, "model_config", None)
-        self._crop_views = (functools.partial(context_views, reach=config.context_reach)
-                            if getattr(config, "lens_context", False) else extract_sub_views)
+        self._crop_views = (
+            functools.partial(context_views, reach=config.context_reach)
+            if getattr(config, "lens_context", False)
+            else extract_sub_views
+        )
         if pool_window is not None:
             if not hasattr(self.model, "set_pool_window"):
-                raise ValueError(f"pool_window: {type(model).__name__} has no channel "
-                                 "attention to pool")
+                raise ValueError(
+                    f"pool_window: {type(model).__name__} has no channel attention to pool"
+                )
             self.model.set_pool_window(pool_window)
-        if not isinstance(mask_cache_bytes, int) or mask_cache_bytes < 0:
-            raise ValueError(f"mask_cache_bytes must be a non-negative integer, "
-                             f"got {mask_cache_bytes!r}")
         if hasattr(self.model, "cache_masks"):
             if 0 < mask_cache_bytes < self.lattice_mask_bytes():
                 # the tiles' masks would evict each other (each frame runs them in turn),
                 # so a cache would be written and never read: masks are made per tile
                 mask_cache_bytes = 0
             self.model.cache_masks(enabled=mask_cache_bytes > 0, max_bytes=mask_cache_bytes)
-        if (isinstance(refine_periphery, bool) or not isinstance(refine_periphery, int)
-                or refine_periphery < 0):
-            raise ValueError(f"refine_periphery must be a whole number of LSV-ADMM iterations "
-                             f">= 0, got {refine_periphery!r}")  # fmt: skip
         self.normalise_exposure = bool(normalise_exposure)
         self.refinement = None
         if refine_periphery > 0:
@@ -306,6 +353,25 @@ class Reconstructor(BaseReconstructor):
         return len(self.grid) * field * side**2 // cells**2
 
     @classmethod
+    def build(
+        cls,
+        method: str,
+        system: SystemConfig | None,
+        weights: str | Path | None = None,
+        model: torch.nn.Module | None = None,
+        **options: Any,
+    ) -> Reconstructor:
+        """From ``model``, else the model file ``weights``, else the bundled model of
+        ``system`` (:class:`FileNotFoundError` when there is none)."""
+        if model is not None:
+            return cls(model, system, **options)
+        if weights is None:
+            from ..pretrained import require_bundled_weights
+
+            weights = require_bundled_weights(system)
+        return cls.from_weights(weights, system, **options)
+
+    @classmethod
     def from_weights(
         cls, path: str | Path, system: SystemConfig | None = None, **options: Any
     ) -> Reconstructor:
@@ -333,8 +399,9 @@ class Reconstructor(BaseReconstructor):
         from ..pretrained import require_bundled_weights
 
         path = require_bundled_weights(system)
-        return cls.from_weights(path, system if isinstance(system, SystemConfig) else None,
-                                **options)
+        return cls.from_weights(
+            path, system if isinstance(system, SystemConfig) else None, **options
+        )
 
     # ------------------------------------------------------------------ input
     def prepare(self, frame: np.ndarray, index: int = 0) -> np.ndarray:

@@ -104,18 +104,20 @@ RHO_BALANCE = 3.0
 RHO_STEP = 10.0
 #: ``γ`` of :func:`auto_tv_weight` (module docstring)
 AUTO_TV_GAIN = 2.0
-_DEFAULTS = registry.method("admm").defaults
+_ADMM = registry.method("admm")
+_DEFAULTS = _ADMM.defaults
 
 
 @dataclass(frozen=True)
 class AdmmSettings:
     """Knobs of :class:`LsvAdmm` (see the module docstring).
 
-    ``tv_weight`` is the fixed ``λ``; the method's default is each frame's own
-    (``"auto"``, :mod:`~svcode_core.methods.registry`), the other knobs are its defaults.
+    ``tv_weight`` is the fixed ``λ`` (the ``fixed`` of the method's option); the method's
+    default is each frame's own (``"auto"``, :mod:`~svcode_core.methods.registry`), the
+    other knobs are its defaults.
     """
 
-    tv_weight: float = 1e-4
+    tv_weight: float = _ADMM.option("tv_weight").fixed
     rho: float = _DEFAULTS["rho"]
     iterations: int = _DEFAULTS["iterations"]
     tolerance: float = _DEFAULTS["tolerance"]
@@ -283,17 +285,11 @@ class LsvAdmm:
     ) -> None:
         if not isinstance(operator, CM2Operator):
             raise TypeError(f"operator must be a CM2Operator, got {type(operator).__name__}")
-        if isinstance(tv_weight, str) and tv_weight != "auto":
-            raise ValueError(f"tv_weight must be a number >= 0 or 'auto', got {tv_weight!r}")
-        fixed_weight = 0.0 if tv_weight == "auto" else tv_weight
-        for name, value, low in (("tv_weight", fixed_weight, 0.0), ("rho", rho, None)):
-            ok = isinstance(value, (int, float)) and math.isfinite(value)
-            if not ok or (value < 0 if low == 0.0 else value <= 0):
-                bound = ">= 0" if low == 0.0 else "> 0"
-                raise ValueError(f"{name} must be a finite number {bound}, got {value!r}")
-        for name, value in (("cg_iterations", cg_iterations), ("check_every", check_every)):
-            if not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        options = {"tv_weight": tv_weight, "rho": rho, "cg_iterations": cg_iterations}
+        for name, value in options.items():
+            _ADMM.option(name).check(value)
+        if not isinstance(check_every, int) or check_every < 1:
+            raise ValueError(f"check_every must be a positive integer, got {check_every!r}")
         self.operator = operator
         self.tv_weight = tv_weight if tv_weight == "auto" else float(tv_weight)
         self.rho = float(rho)
@@ -311,11 +307,7 @@ class LsvAdmm:
         Leading batch axes are allowed (the same on every part).
         """
         _, c_tv, c_id = self.weights
-        return (
-            self.operator.adjoint(parts[0])
-            + c_tv * gradient_adjoint(parts[1])
-            + c_id * parts[2]
-        )
+        return self.operator.adjoint(parts[0]) + c_tv * gradient_adjoint(parts[1]) + c_id * parts[2]
 
     def _frame(self, frame: torch.Tensor) -> torch.Tensor:
         system = self.operator.system
@@ -390,10 +382,8 @@ class LsvAdmm:
         """Generator form of :meth:`solve`: yields the number of iterations done after every
         iteration and returns the :class:`AdmmResult`; closing it stops between iterations.
         """
-        if not isinstance(iterations, int) or iterations < 1:
-            raise ValueError(f"iterations must be a positive integer, got {iterations!r}")
-        if not (math.isfinite(tolerance) and tolerance >= 0):
-            raise ValueError(f"tolerance must be a finite number >= 0, got {tolerance!r}")
+        _ADMM.option("iterations").check(iterations)
+        _ADMM.option("tolerance").check(tolerance)
         op, c_tv = self.operator, self.weights[1]
         y = self._frame(frame)
         tv_weight = self._tv_weight(y)
@@ -483,6 +473,9 @@ class LsvAdmm:
         dual = data_change + c[1] * gradient_adjoint(changes[1]) + c[2] * changes[2]
         terms = (data_dual, c[1] * gradient_adjoint(d[1]), c[2] * d[2])
         scale = sum(float(term.norm()) for term in terms)
-        return math.sqrt(primal), rho * float(dual.norm()), math.sqrt(max(size_k, size_z)), (
-            rho * scale
+        return (
+            math.sqrt(primal),
+            rho * float(dual.norm()),
+            math.sqrt(max(size_k, size_z)),
+            (rho * scale),
         )

@@ -36,7 +36,6 @@ shift-invariant image they agree with it:
 
 from __future__ import annotations
 
-import math
 from collections.abc import Generator
 
 import torch
@@ -60,7 +59,9 @@ __all__ = [
 
 RL_EPSILON = 1e-12
 FUSION_FLOOR = 1e-6
-BOUNDARIES = ("periodic", "reflect")
+_WIENER, _RL = registry.method("wiener"), registry.method("rl")
+#: the Wiener filter's boundary handling (its ``boundary`` option's choices)
+BOUNDARIES = _WIENER.option("boundary").choices
 
 
 def _centred_spectra(kernels: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
@@ -117,10 +118,8 @@ def wiener_deconvolve(
         Same shape and dtype as ``images``.
     """
     _check_images(images, psfs)
-    if not (isinstance(balance, (int, float)) and math.isfinite(balance) and balance > 0):
-        raise ValueError(f"balance must be a finite number > 0, got {balance!r}")
-    if boundary not in BOUNDARIES:
-        raise ValueError(f"boundary must be one of {BOUNDARIES}, got {boundary!r}")
+    _WIENER.option("balance").check(balance)
+    _WIENER.option("boundary").check(boundary)
     rows, cols = images.shape[-2:]
     pad_r, pad_c = (min(psfs.shape[-2], rows - 1), min(psfs.shape[-1], cols - 1))
     if boundary == "reflect":
@@ -166,8 +165,7 @@ def iter_richardson_lucy(
     """Generator form of :func:`richardson_lucy_deconvolve`: yields the number of updates
     done after every update and returns the estimate; closing it stops between updates."""
     _check_images(images, psfs)
-    if not isinstance(iterations, int) or iterations < 1:
-        raise ValueError(f"iterations must be a positive integer, got {iterations!r}")
+    _RL.option("iterations").check(iterations)
     if bool((psfs < 0).any()):
         raise ValueError("Richardson–Lucy needs non-negative PSFs")
     rows, cols = images.shape[-2:]
@@ -274,9 +272,9 @@ class ShiftInvariantDeconvolution:
         self,
         operator: CM2Operator,
         method: str,
-        balance: float = registry.method("wiener").defaults["balance"],
-        iterations: int = registry.method("rl").defaults["iterations"],
-        boundary: str = registry.method("wiener").defaults["boundary"],
+        balance: float = _WIENER.defaults["balance"],
+        iterations: int = _RL.defaults["iterations"],
+        boundary: str = _WIENER.defaults["boundary"],
     ) -> None:
         if method not in ("wiener", "rl"):
             raise ValueError(f"method must be 'wiener' or 'rl', got {method!r}")

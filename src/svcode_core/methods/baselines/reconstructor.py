@@ -16,6 +16,7 @@ reconstruction re-imaged through the forward model (a model-based demixing).
 from __future__ import annotations
 
 import functools
+from abc import abstractmethod
 from collections.abc import Generator
 from typing import Any
 
@@ -35,10 +36,19 @@ from ..tiling import exhaust
 from .admm import LsvAdmm, settings_for
 from .deconv import ShiftInvariantDeconvolution
 
-__all__ = ["BaselineReconstructor", "build_operator", "default_rank", "reconstruct_with_baseline"]
+__all__ = [
+    "AdmmReconstructor",
+    "BaselineReconstructor",
+    "DeconvolutionReconstructor",
+    "build_operator",
+    "default_rank",
+    "reconstruct_with_baseline",
+]
 
-_HALF = ("they are FFT-based; torch has no half-precision FFT on the CPU and only "
-         "power-of-two sizes on CUDA")
+_HALF = (
+    "they are FFT-based; torch has no half-precision FFT on the CPU and only "
+    "power-of-two sizes on CUDA"
+)
 
 
 def default_rank(system: SystemConfig, psfs: np.ndarray | None = None) -> int | None:
@@ -82,12 +92,22 @@ def build_operator(
     psfs = model_psfs(system)
     if rank is None:
         rank = default_rank(system, psfs)
-    return CM2Operator.from_psfs(system, psfs, rank=rank, dtype=dtype,
-                                 device=resolve_device(device), memory_budget=memory_budget)
+    return CM2Operator.from_psfs(
+        system,
+        psfs,
+        rank=rank,
+        dtype=dtype,
+        device=resolve_device(device),
+        memory_budget=memory_budget,
+    )
 
 
 class BaselineReconstructor(FrameByFrame):
     """Reconstruct raw CM² frames with a model-based baseline.
+
+    ``BaselineReconstructor(method, ...)`` makes the method's own class (the registry's,
+    :func:`~svcode_core.methods.registry.reconstructor_class`): :class:`AdmmReconstructor`
+    or :class:`DeconvolutionReconstructor`.
 
     Parameters
     ----------
@@ -100,20 +120,22 @@ class BaselineReconstructor(FrameByFrame):
     precision : {"fp32", "fp64"}
         Used when building the operator; half precision raises :class:`ValueError`.
     **options
-        The method's options (its ``options`` in :mod:`~svcode_core.methods.registry`;
-        ``None`` means the method's default, its ``defaults`` there):
-        ``rank`` (low-rank order ``K`` of the operator built, default
-        :func:`default_rank`), ``memory_budget`` (bytes of the operator's spectra and
-        working chunks, default 1 GiB), ADMM ``iterations``, ``tv_weight`` (a number, or
-        ``"auto"``: from each frame's noise and level,
+        The method's options (its table in :mod:`~svcode_core.methods.registry`, which
+        checks them; ``None`` means the method's default): ``rank`` (low-rank order ``K``
+        of the operator built, default :func:`default_rank`), ``memory_budget`` (bytes of
+        the operator's spectra and working chunks, default 1 GiB), ADMM ``iterations``,
+        ``tv_weight`` (a number, or ``"auto"``: from each frame's noise and level,
         :func:`~svcode_core.methods.baselines.admm.auto_tv_weight`), ``rho``,
         ``tolerance``, ``cg_iterations``, Wiener ``balance`` and ``boundary``, RL
         ``iterations``.
-
-    Notes
-    -----
-    For a stack, ADMM warm-starts every frame from the previous frame's result.
     """
+
+    def __new__(cls, method: str | None = None, *args: Any, **kwargs: Any):
+        if cls is BaselineReconstructor:
+            if method not in MODEL_BASED_METHODS:
+                raise ValueError(f"method: {method!r} is not one of {MODEL_BASED_METHODS}")
+            cls = registry.reconstructor_class(method)
+        return super().__new__(cls)
 
     def __init__(
         self,
@@ -126,12 +148,12 @@ class BaselineReconstructor(FrameByFrame):
     ) -> None:
         if method not in MODEL_BASED_METHODS:
             raise ValueError(f"method: {method!r} is not one of {MODEL_BASED_METHODS}")
-        accepted = registry.method(method).options
+        if not isinstance(self, registry.reconstructor_class(method)):
+            raise ValueError(f"method: {type(self).__name__} does not run {method!r}")
+        entry = registry.method(method)
         precision_dtype(precision, method, _HALF)  # refuse half precision before any work
         options = {key: value for key, value in options.items() if value is not None}
-        unknown = sorted(set(options) - set(accepted))
-        if unknown:
-            raise ValueError(f"{method}: unknown option(s) {unknown}; it accepts {list(accepted)}")
+        entry.check(options)
         rank = options.pop("rank", None)
         budget = options.pop("memory_budget", None)
         if operator is None:
@@ -145,22 +167,37 @@ class BaselineReconstructor(FrameByFrame):
         self.precision = precision
         self.operator = operator
         self.options = options
-        self._previous: torch.Tensor | None = None
-        options = {**registry.method(method).defaults, **options}
-        options.pop("rank", None)
-        if method == "admm":
-            settings = settings_for(system)  # the knobs that are no options
-            self.iterations = options["iterations"]
-            self.tolerance = options["tolerance"]
-            self.solver = LsvAdmm(operator, tv_weight=options["tv_weight"], rho=options["rho"],
-                                  cg_iterations=options["cg_iterations"],
-                                  adaptive_rho=settings.adaptive_rho,
-                                  check_every=settings.check_every)  # fmt: skip
-        else:
-            self.solver = ShiftInvariantDeconvolution(operator, method, **options)
-        self.frame_steps = self.iterations if method == "admm" else self.solver.steps
+        settings = {**entry.defaults, **options}
+        settings.pop("rank", None)
+        self._start(settings)
+
+    @classmethod
+    def build(
+        cls,
+        method: str,
+        system: SystemConfig | None,
+        weights: Any = None,
+        model: Any = None,
+        **options: Any,
+    ) -> BaselineReconstructor:
+        """``cls(method, system, **options)``; the model-based methods take no model file."""
+        if system is None:
+            raise ValueError(f"{registry.method(method).title} needs the system configuration")
+        return cls(method, system, **options)
+
+    @abstractmethod
+    def _start(self, settings: dict[str, Any]) -> None:
+        """Make the solver from the method's settings (options with their defaults)."""
+
+    @abstractmethod
+    def iter_reconstruct_tensor(
+        self, frame: np.ndarray, x0: torch.Tensor | None = None, index: int = 0
+    ) -> Generator[int, None, torch.Tensor]:
+        """Generator form of :meth:`reconstruct_tensor`: yields the iterations done after
+        every one (ADMM, RL; Wiener yields nothing) and returns the reconstruction."""
 
     def _padded(self, frame: np.ndarray, index: int) -> torch.Tensor:
+        check_frame_shape(np.shape(frame), self.system)
         values = finite_frame(frame, index, np.float64)
         lenses = self.operator.lenses
         tensor = torch.as_tensor(values, dtype=lenses.dtype, device=lenses.device)
@@ -172,22 +209,6 @@ class BaselineReconstructor(FrameByFrame):
         """One raw frame ``(H, W)`` → the reconstruction ``(S, S)`` as a tensor."""
         return exhaust(self.iter_reconstruct_tensor(frame, x0, index))
 
-    def iter_reconstruct_tensor(
-        self, frame: np.ndarray, x0: torch.Tensor | None = None, index: int = 0
-    ) -> Generator[int, None, torch.Tensor]:
-        """Generator form of :meth:`reconstruct_tensor`: yields the iterations done after
-        every one (ADMM, RL; Wiener yields nothing) and returns the reconstruction."""
-        check_frame_shape(np.shape(frame), self.system)
-        padded = self._padded(frame, index)
-        if self.method == "admm":
-            steps = self.solver.iter_solve(padded, x0, self.iterations, self.tolerance)
-            return (yield from steps).x
-        return (yield from self.solver.iter_solve(padded))
-
-    def start_stack(self) -> None:
-        """ADMM warm-starts every frame of a stack from the previous one, not across calls."""
-        self._previous = None
-
     def reconstruct_frame(
         self, frame: np.ndarray, index: int, return_views: bool
     ) -> tuple[np.ndarray, np.ndarray | None]:
@@ -197,15 +218,72 @@ class BaselineReconstructor(FrameByFrame):
     def iter_reconstruct_frame(
         self, frame: np.ndarray, index: int, return_views: bool
     ) -> Generator[int, None, tuple[np.ndarray, np.ndarray | None]]:
-        """Generator form of :meth:`reconstruct_frame`, yielding the iterations done; a frame
-        stopped part way leaves the warm start of the next as it was."""
-        estimate = yield from self.iter_reconstruct_tensor(frame, self._previous, index)
-        self._previous = estimate if self.method == "admm" else None
+        """Generator form of :meth:`reconstruct_frame`, yielding the iterations done."""
+        estimate = yield from self.iter_reconstruct_tensor(frame, None, index)
+        return self._outputs(estimate, return_views)
+
+    def _outputs(
+        self, estimate: torch.Tensor, return_views: bool
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         views = None
         if return_views:
             lens = self.operator.lens_images(estimate)
             views = lens.detach().to("cpu", torch.float32).numpy()
         return estimate.detach().to("cpu", torch.float32).numpy(), views
+
+
+class AdmmReconstructor(BaselineReconstructor):
+    """LSV-ADMM (:class:`~svcode_core.methods.baselines.admm.LsvAdmm`) on raw frames; see
+    :class:`BaselineReconstructor`. For a stack, every frame warm-starts from the previous
+    frame's result."""
+
+    def _start(self, settings: dict[str, Any]) -> None:
+        system_settings = settings_for(self.system)  # the knobs that are no options
+        self.iterations = settings["iterations"]
+        self.tolerance = settings["tolerance"]
+        self.solver = LsvAdmm(self.operator, tv_weight=settings["tv_weight"],
+                              rho=settings["rho"], cg_iterations=settings["cg_iterations"],
+                              adaptive_rho=system_settings.adaptive_rho,
+                              check_every=system_settings.check_every)  # fmt: skip
+        self.frame_steps = self.iterations
+        self._previous: torch.Tensor | None = None
+
+    def iter_reconstruct_tensor(
+        self, frame: np.ndarray, x0: torch.Tensor | None = None, index: int = 0
+    ) -> Generator[int, None, torch.Tensor]:
+        padded = self._padded(frame, index)
+        steps = self.solver.iter_solve(padded, x0, self.iterations, self.tolerance)
+        return (yield from steps).x
+
+    def start_stack(self) -> None:
+        """Every frame of a stack warm-starts from the previous one, not across calls."""
+        self._previous = None
+
+    def iter_reconstruct_frame(
+        self, frame: np.ndarray, index: int, return_views: bool
+    ) -> Generator[int, None, tuple[np.ndarray, np.ndarray | None]]:
+        """Generator form of :meth:`reconstruct_frame`, yielding the iterations done; a frame
+        stopped part way leaves the warm start of the next as it was."""
+        estimate = yield from self.iter_reconstruct_tensor(frame, self._previous, index)
+        self._previous = estimate
+        return self._outputs(estimate, return_views)
+
+
+class DeconvolutionReconstructor(BaselineReconstructor):
+    """Wiener or Richardson–Lucy per view, fused
+    (:class:`~svcode_core.methods.baselines.deconv.ShiftInvariantDeconvolution`), on raw
+    frames; see :class:`BaselineReconstructor`."""
+
+    def _start(self, settings: dict[str, Any]) -> None:
+        self.solver = ShiftInvariantDeconvolution(self.operator, self.method, **settings)
+        self.frame_steps = self.solver.steps
+
+    def iter_reconstruct_tensor(
+        self, frame: np.ndarray, x0: torch.Tensor | None = None, index: int = 0
+    ) -> Generator[int, None, torch.Tensor]:
+        """Generator form of :meth:`reconstruct_tensor` (``x0`` is not used): yields the RL
+        iterations done after every one (Wiener nothing) and returns the reconstruction."""
+        return (yield from self.solver.iter_solve(self._padded(frame, index)))
 
 
 def reconstruct_with_baseline(

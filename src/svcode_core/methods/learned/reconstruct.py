@@ -69,6 +69,26 @@ class LearnedReconstructor(FrameByFrame):
         self.normalise_exposure = bool(normalise_exposure)
 
     @classmethod
+    def build(
+        cls,
+        method: str,
+        system: SystemConfig | None,
+        weights: str | Path | None = None,
+        model: nn.Module | None = None,
+        **options: Any,
+    ) -> LearnedReconstructor:
+        """From ``model``, else the model file ``weights`` (one of ``method``); none is
+        bundled."""
+        if model is not None:
+            return cls(model, system, **options)
+        if weights is None:
+            raise ValueError(
+                f"{registry.method(method).title} needs a trained model file: none is "
+                f"bundled; train one with `svcode train --method {method}`"
+            )
+        return cls.from_weights(weights, system, method, **options)
+
+    @classmethod
     def from_weights(
         cls,
         path: str | Path,
@@ -87,8 +107,10 @@ class LearnedReconstructor(FrameByFrame):
         architecture = read_model_metadata(path)["architecture"]
         learned = {name: registry.method(name).architecture for name in LEARNED_METHODS}
         if method is not None and learned.get(method) != architecture:
-            raise ValueError(f"{Path(path).name} holds a {architecture}, not a "
-                             f"{learned.get(method, method)} (--method {method})")
+            raise ValueError(
+                f"{Path(path).name} holds a {architecture}, not a "
+                f"{learned.get(method, method)} (--method {method})"
+            )
         if architecture not in learned.values():
             raise ValueError(f"{Path(path).name} holds a {architecture}, not a learned baseline")
         model, trained = load_model(path, system=system, device=options.get("device", "cpu"))
@@ -103,8 +125,9 @@ class LearnedReconstructor(FrameByFrame):
         """One raw frame → its float32 reconstruction (these methods do not demix)."""
         values = finite_frame(frame, index)
         gain = self.exposure_gain(np.maximum(values, 0.0)) or 1.0
-        padded = pad_sensor_frame(torch.from_numpy(values * np.float32(gain)).to(self.device),
-                                  self.system)
+        padded = pad_sensor_frame(
+            torch.from_numpy(values * np.float32(gain)).to(self.device), self.system
+        )
         bf16 = self.precision == "bf16"
         with torch.inference_mode(), torch.autocast(self.device.type, dtype=torch.bfloat16,
                                                     enabled=bf16):  # fmt: skip
