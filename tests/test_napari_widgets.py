@@ -296,6 +296,7 @@ def test_calibrate_from_a_scan_file_draws_the_fitted_rays_and_saves(
     assert saved.replace(psf_model=None) == fitted
     assert raw.metadata[SYSTEM_KEY] == saved == widget.system  # now with the measured PSFs
     assert (tmp_path / "cal" / "report.txt").read_text() == widget._report.value
+    assert files["figure"] == tmp_path / "cal" / "report.png" and files["figure"].is_file()
 
 
 def test_calibrate_a_scan_layer_without_a_raw_frame_and_cancel(qtbot, tmp_path, scan_files,
@@ -479,7 +480,7 @@ def test_a_moved_sub_view_box_keeps_the_bundled_model(qtbot, monkeypatch, tmp_pa
     # any other difference is refused, the differing field named first, in a toast
     raw.metadata = {**raw.metadata, SYSTEM_KEY: moved.replace(patch_size=24, patch_stride=12)}
     assert widget.start() is None
-    cause, fix = errors[-1].split("\n")
+    cause, fix = errors[-1].split("\n")[:2]
     assert cause == "tiny.safetensors was trained for system 'tiny', which differs in " \
                     "patch_size, patch_stride"
     assert fix == "→ choose a model trained for this system"
@@ -641,6 +642,57 @@ def test_each_method_shows_only_its_options(make_napari_viewer):
     assert _shown(widget._second) and widget._second.method.value == "admm"
 
 
+def test_option_widgets_are_made_from_the_tables(qtbot):
+    """Every option of every method's table that is not advanced has a widget, shown with
+    its method, labelled, with the table's help and starting at the table's default, which
+    is what the panel gives; the advanced ones have none (only their flag)."""
+    from napari_svcode.widgets._methods import MethodPanel
+    from svcode_core.methods import METHODS, registry
+
+    panel = MethodPanel()
+    for method in METHODS:
+        panel.method.value = method
+        expected = {"precision": registry.method(method).precisions[0]}
+        for option in registry.method(method).options:
+            name = option.widget or option.name
+            if option.advanced:
+                assert name not in panel._widgets, (method, name)
+                continue
+            widget = panel._widgets[name]
+            assert _shown(widget) and widget.tooltip.startswith(option.describe())
+            assert option.label in (widget.label, getattr(widget, "text", None))
+            if option.auto:  # a tick box for "auto", the number beside it
+                box = panel._widgets[f"{name.split('_')[0]}_auto"]
+                assert box.value == (option.default == "auto")
+            elif option.ceiling or option.default is None:
+                assert widget.value == 0  # 0: the default
+            else:
+                assert widget.value == option.default, (method, name)
+            if option.default != 0:  # an option that is 0 (none) by default is left out
+                expected[option.name] = None if option.ceiling else option.default
+        assert panel.options() == expected, method
+
+
+def test_the_cost_estimate_tiles_as_the_core_does(qtbot):
+    """The plugin's estimate counts the tiles and working memory the core plans for the
+    run (the bundled model's whole sub-view by default), not a formula of its own."""
+    from napari_svcode.widgets._methods import MethodPanel
+    from svcode_core.methods.svcode import tile_plan
+
+    system = SystemConfig.preset("cm2-mini")
+    panel = MethodPanel()
+    for tile in (0, 100, 7):
+        panel.tile.value = tile
+        options = {k: v for k, v in panel.options().items() if v is not None}
+        run = Reconstructor.pretrained(system, **options)
+        per_frame = len(run.grid)
+        cost = panel.cost(system, 2, "cpu", False)
+        assert cost.detail == f"{2 * per_frame:,} tiles: {per_frame:,} a frame × 2 frames"
+        planned = tile_plan(run.model, system, tile_size=tile or None).working_bytes
+        assert planned > 0 and cost.memory == 2 * 384**2 * 4 + 2**30 + planned
+    assert per_frame == 127**2  # 7-px tiles at stride 3
+
+
 def test_cells_sample_reconstructs_with_lsv_admm(qtbot, make_napari_viewer):
     """After opening the cells sample the widget points at the raw frame, offers LSV-ADMM
     and adds a finite S×S layer with it."""
@@ -755,7 +807,7 @@ def test_costly_settings_ask_before_running(qtbot, make_napari_viewer, warnings)
     widget._panel.tile.value = 7
     assert _shown(widget._warning) and "16,129 tiles" in widget._warning.value
     assert widget.start() is None and widget.worker is None
-    cause, fix = warnings[-1].split("\n")
+    cause, fix = warnings[-1].split("\n")[:2]
     assert "16,129 tiles" in cause and "Reconstruct anyway" in fix
     assert widget._run.text == "Reconstruct anyway"
     worker = widget.start()  # the way on: a second press runs it
@@ -907,14 +959,17 @@ def test_errors_toast_cause_and_fix_and_log_the_full_text(make_model_file, tmp_p
                      metadata=layer_metadata(tiny_system, "measurement"))
     with caplog.at_level("ERROR", logger="napari_svcode"):
         assert widget.start() is None
-    cause, fix = errors[-1].split("\n")
+    cause, fix = errors[-1].split("\n")[:2]
     assert len(cause) <= 90 and str(tmp_path) not in cause and "other.safetensors" in cause
     assert fix == "→ choose a model trained for this system"
     assert str(other) in caplog.text and "differs" in caplog.text  # the full text is logged
+    whole = errors[-1].split("\n\n", 1)[1]  # and shown on the toast's expand arrow
+    assert str(other) in whole and "1 field(s): name" in whole
 
     widget._panel.method.value = "fouriernet"  # a learned baseline without a model file
     assert widget.start() is None
-    assert errors[-1].count("\n") == 1 and "needs a trained model file" in errors[-1]
+    cause, fix, _, whole = errors[-1].split("\n")
+    assert "needs a trained model file" in cause and "svcode train --method fouriernet" in whole
 
 
 def test_cli_command_for_a_folder(tiny_system, make_napari_viewer):
@@ -1200,22 +1255,42 @@ def test_screenshot_calibration_overlay(qtbot, tmp_path, make_napari_viewer):
 
 
 def test_frames_the_core_would_warn_about_are_named_before_the_run(
-        qtbot, tiny_system, make_napari_viewer, make_model_file, tmp_path, warnings):
+        qtbot, monkeypatch, tiny_system, make_napari_viewer, make_model_file, tmp_path,
+        warnings):
     """12-bit counts in 16-bit words and a blank frame: the same words as the command
-    line, each a two-line notice (problem, what to do); the run goes on."""
+    line, each a notice of two lines (problem, what to do) and the whole message on expand;
+    the run goes on, and the 12-bit notice's button sets the full scale to 4095."""
+    toasts = []
+    monkeypatch.setattr(plugin_errors, "dispatch", toasts.append)
     viewer = make_napari_viewer()
     stack = (_raw_stack(tiny_system, 2) * 4000).astype(np.uint16)
     stack[1] = 0
     viewer.add_image(stack, name="raw", metadata=layer_metadata(tiny_system, "measurement"))
     widget = _dock(viewer, ReconstructWidget)
-    _use_model(widget, make_model_file(tmp_path / "tiny.safetensors", tiny_system))
+    path = make_model_file(tmp_path / "tiny.safetensors", tiny_system)
+    _use_model(widget, path)
     worker = widget.start()
     assert worker is not None
     _wait_done(qtbot, widget)
-    causes = [message.split("\n")[0] for message in warnings]
-    assert any("at most 12 bits" in cause for cause in causes), warnings
-    assert any("blank frames" in cause for cause in causes), warnings
-    assert all(len(message.split("\n")) == 2 for message in warnings)
+    messages = warnings + [toast.message for toast in toasts]
+    causes = [message.split("\n")[0] for message in messages]
+    assert any("at most 12 bits" in cause for cause in causes), causes
+    assert any("blank frames" in cause for cause in causes), causes
+    assert all(message.split("\n")[1].startswith("→ ") for message in messages)
+
+    (bits,) = toasts
+    ((label, press),) = bits.actions
+    assert "at most 12 bits" in bits.message and label == "Use 4095"
+    press(None)
+    assert widget._full_scale.value == 4095.0
+    assert "--input-scale 4095" in widget.command()
+    worker = widget.start()
+    assert worker is not None
+    _wait_done(qtbot, widget)
+    assert len(toasts) == 1  # no 12-bit notice with the full scale set
+    rec = Reconstructor.from_weights(path, tiny_system)
+    expected = rec(stack[0].astype(np.float32) / 4095.0).reconstruction
+    np.testing.assert_allclose(viewer.layers["reconstruction"].data[0], expected, atol=1e-5)
 
 
 def test_lsv_admm_shows_its_iterations_and_a_cancel_keeps_the_frames_done(

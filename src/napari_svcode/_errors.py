@@ -1,7 +1,8 @@
 """Error notifications that fit a toast: the cause in one short line, the fix in a second.
 
-The full message (with the traceback of an exception) goes to the ``napari_svcode`` logger,
-so nothing is lost when the toast is short.
+A message longer than its short cause follows them after a blank line, so napari's
+expand arrow on the toast shows it whole; the full message (with the traceback of an
+exception) also goes to the ``napari_svcode`` logger.
 """
 
 from __future__ import annotations
@@ -9,9 +10,19 @@ from __future__ import annotations
 import logging
 import re
 
-from napari.utils.notifications import show_error, show_warning
+from collections.abc import Callable, Sequence
+from typing import Any
 
-__all__ = ["LOG", "fix_for", "notify_error", "notify_warning", "short_cause"]
+from napari.utils.notifications import (
+    Notification,
+    NotificationSeverity,
+    notification_manager,
+    show_error,
+    show_warning,
+)
+
+__all__ = ["LOG", "dispatch", "fix_for", "notify_error", "notify_warning", "short_cause",
+           "toast_text"]
 
 LOG = logging.getLogger("napari_svcode")
 MAX_CAUSE = 90
@@ -58,6 +69,23 @@ def _log(level: int, problem: object, fix: str) -> None:
     LOG.log(level, "%s%s", problem, f"\nWhat to do: {fix}" if fix else "", exc_info=exc_info)
 
 
+def toast_text(problem: object, fix: str) -> str:
+    """The short cause, the fix, and the whole message when the cause cut it short.
+
+    Examples
+    --------
+    >>> print(toast_text("frame 3 is blank; check the shutter", "look at frame 3"))
+    frame 3 is blank
+    → look at frame 3
+    <BLANKLINE>
+    frame 3 is blank; check the shutter
+    """
+    short = short_cause(problem)
+    text = short + (f"\n→ {fix}" if fix else "")
+    whole = " ".join(str(problem).split())
+    return text if whole.rstrip(".;: ") == short else f"{text}\n\n{whole}"
+
+
 def notify_error(problem: object, what_to_do: str = "") -> None:
     """Toast ``problem`` (an exception or text) as its short cause and a fitting fix.
 
@@ -66,10 +94,24 @@ def notify_error(problem: object, what_to_do: str = "") -> None:
     """
     fix = fix_for(problem, what_to_do)
     _log(logging.ERROR, problem, fix)
-    show_error(short_cause(problem) + (f"\n→ {fix}" if fix else ""))
+    show_error(toast_text(problem, fix))
 
 
-def notify_warning(problem: str, what_to_do: str) -> None:
-    """Toast a warning in two lines (cause, then what to do) and log it."""
+#: a toast's button: its text and what it does (called with the toast)
+Action = tuple[str, Callable[[Any], None]]
+
+
+def notify_warning(problem: str, what_to_do: str, actions: Sequence[Action] = ()) -> None:
+    """Toast a warning in two lines (cause, then what to do) and log it; ``actions``
+    become buttons on the toast (the fix one click away)."""
     _log(logging.WARNING, problem, what_to_do)
-    show_warning(f"{short_cause(problem)}\n→ {what_to_do}")
+    text = toast_text(problem, what_to_do)
+    if actions:
+        dispatch(Notification(text, NotificationSeverity.WARNING, actions=tuple(actions)))
+    else:
+        show_warning(text)
+
+
+def dispatch(notification: Notification) -> None:
+    """Show ``notification`` (napari's notification manager)."""
+    notification_manager.dispatch(notification)

@@ -37,7 +37,7 @@ from svcode_core.methods import (
     iter_method,
 )
 from svcode_core.methods.base import FrameProgress, ReconstructionResult, check_frame_shape
-from svcode_core.methods.frames import frame_warnings
+from svcode_core.methods.frames import few_bits_scale, frame_warnings
 
 from .._errors import LOG, notify_error, notify_warning
 from .._layers import (
@@ -71,6 +71,28 @@ KNOBS = {"tile_size": "tile {}", "refine_periphery": "periphery ×{}", "rank": "
 #: progress-bar steps per frame: the bar and its text change at most this often a frame
 #: (every Qt call from Python has a cost, so tile-by-tile updates are coalesced)
 STEPS = 100
+
+
+#: the full scales offered for integer frames: (label, count); ``None``: the type's
+FULL_SCALES = [("the type's (255, 65535)", None), ("10 bits: 1023", 1023.0),
+               ("12 bits: 4095", 4095.0), ("14 bits: 16383", 16383.0)]
+
+
+class ScaledFrames:
+    """A ``(T, H, W)`` stack of sensor counts read as float32 frames of full scale 1: each
+    frame divided by ``scale`` when it is read."""
+
+    def __init__(self, frames: np.ndarray, scale: float) -> None:
+        self.frames, self.scale = frames, float(scale)
+        self.shape = frames.shape
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __getitem__(self, index: int | slice) -> Any:
+        if isinstance(index, slice):
+            return ScaledFrames(self.frames[index], self.scale)
+        return (np.asarray(self.frames[index], np.float64) / self.scale).astype(np.float32)
 
 
 def frame_order(count: int, first: int = 0) -> list[int]:
@@ -171,6 +193,11 @@ class ReconstructWidget(Container):
                                       tooltip="optional: the true object (S×S) of the raw "
                                               "frame's simulated scene, for PSNR/SSIM")
         self._device = ComboBox(label="device", choices=available_devices())
+        self._full_scale = ComboBox(
+            label="full scale", choices=FULL_SCALES, value=None,
+            tooltip="the sensor's full-scale count of integer frames (svcode reconstruct "
+                    "--input-scale): a 12-bit camera's counts stored in 16-bit words need "
+                    "4095, not the type's 65535")
         self._views = CheckBox(text="add the demixed views", value=False)
         self._warning = Label(value="")
         self._run = PushButton(text="Reconstruct")
@@ -185,7 +212,7 @@ class ReconstructWidget(Container):
         self._command_text.read_only = True
         super().__init__(widgets=[
             self._layer, self._panel, self._compare, self._second, self._truth, self._device,
-            self._views, self._warning, self._run, self._cancel, self._progress, self._status,
+            self._full_scale, self._views, self._warning, self._run, self._cancel, self._progress, self._status,
             self._results, self._command, self._command_text,
         ])
         self._second.visible = False
@@ -196,6 +223,7 @@ class ReconstructWidget(Container):
         self._compare.changed.connect(self._on_compare)
         self._layer.changed.connect(self._on_layer)
         for widget in (self._panel, self._second, self._compare, self._layer, self._device,
+                       self._full_scale,
                        self._views):
             widget.changed.connect(self._update_warning)
         self.worker: GeneratorWorker | None = None
@@ -209,11 +237,21 @@ class ReconstructWidget(Container):
     def _on_compare(self, on: bool) -> None:
         self._second.visible = on
 
+    def _warn_about(self, frames: np.ndarray, scale: float | None) -> None:
+        """Toast what the core would warn about ``frames``; 12-bit counts in 16-bit words
+        come with a button that sets the full scale to 4095."""
+        fitting = few_bits_scale(frames) if scale is None else None
+        for problem, fix in frame_warnings(frames, scale):
+            actions = ()
+            if fitting is not None and "bits" in problem:
+                actions = ((f"Use {fitting:g}", lambda _toast: self._use_full_scale(fitting)),)
+            notify_warning(problem, fix, actions)
+
+    def _use_full_scale(self, scale: float) -> None:
+        self._full_scale.value = scale
+        show_info(f"Full scale set to {scale:g}: press Reconstruct again.")
+
     def _on_layer(self, layer: napari.layers.Image | None) -> None:
-        system = self._layer_system(layer)
-        if system is not None:
-            self._panel.set_system(system)
-            self._second.set_system(system)
         if hasattr(self, "_truth"):  # the raw frame's own truth, or none
             self._truth.refit()
         self._update_warning()
@@ -269,7 +307,8 @@ class ReconstructWidget(Container):
     def _settings_key(self) -> tuple:
         panels = tuple((panel.method.value, tuple(sorted(panel.options().items())))
                        for panel in self._panels())
-        return (id(self._layer.value), panels, self._device.value, self._views.value)
+        return (id(self._layer.value), panels, self._device.value, self._views.value,
+                self._full_scale.value)
 
     def _job(self, panel: MethodPanel, system: SystemConfig | None, name: str) -> tuple:
         """The job of ``panel`` and the system it runs on (SV-CoDe: the model's)."""
@@ -359,8 +398,8 @@ class ReconstructWidget(Container):
             self._status.value = f"Not run: {str(err).splitlines()[0]}"
             notify_error(err, "check the raw layer, its system (Calibration) and the model")
             return None
-        for problem, fix in frame_warnings(frames):  # what the core would warn about
-            notify_warning(problem, fix)
+        scale = self._full_scale.value
+        self._warn_about(frames, scale)
         warning = self._cost_warning()
         if warning and self._confirmed != self._settings_key():
             self._confirmed = self._settings_key()
@@ -373,6 +412,8 @@ class ReconstructWidget(Container):
         if compare:
             frames, first = frames[first:first + 1], 0
         views = self._views.value and not compare
+        if scale is not None:
+            frames = ScaledFrames(frames, scale)
         if compare:
             self._remove_compared(jobs)
         if unscored:
@@ -646,6 +687,8 @@ class ReconstructWidget(Container):
             preset = system.name if system.name in available_presets() and \
                 SystemConfig.preset(system.name) == system else "system.json"
             arguments = ["--system", preset, *arguments]
+        if self._full_scale.value is not None:
+            arguments += ["--input-scale", f"{self._full_scale.value:g}"]
         if self._views.value:
             arguments += ["--views", '"${f%.tif}.views.tif"']
         flags = " ".join(arg if arg.startswith('"') else shlex.quote(arg) for arg in arguments)

@@ -48,6 +48,7 @@ __all__ = [
     "WARN_ABOVE",
     "as_frame_stack",
     "finite_frame",
+    "few_bits_scale",
     "frame_warnings",
     "require_frames",
 ]
@@ -127,9 +128,19 @@ def _warn(message: tuple[str, str]) -> None:
     warnings.warn(": ".join(message), UserWarning, stacklevel=3)
 
 
-def _uses_few_bits(raw: np.ndarray) -> bool:
-    return raw.dtype.kind in "iu" and raw.dtype.itemsize == 2 and raw.size > 0 and (
+def few_bits_scale(raw: Any) -> float | None:
+    """The full-scale count of 16-bit integer frames whose values all fit in 12 bits
+    (4095: a 12-bit sensor's counts stored as uint16), else ``None``.
+
+    Examples
+    --------
+    >>> few_bits_scale(np.full((4, 4), 4000, np.uint16)), few_bits_scale(np.ones(4))
+    (4095.0, None)
+    """
+    raw = np.asarray(raw)
+    few = raw.dtype.kind in "iu" and raw.dtype.itemsize == 2 and raw.size > 0 and (
         0 < int(raw.max()) < 1 << 12)
+    return float((1 << 12) - 1) if few else None
 
 
 def frame_warnings(frames: Any, scale: float | None = None) -> list[tuple[str, str]]:
@@ -147,7 +158,7 @@ def frame_warnings(frames: Any, scale: float | None = None) -> list[tuple[str, s
     """
     stack = as_frame_stack(frames)
     found = []
-    if scale is None and _uses_few_bits(stack):
+    if scale is None and few_bits_scale(stack) is not None:
         found.append(_few_bits(stack.dtype))
     top = float(stack.max()) if stack.size else 0.0
     full = scale if scale is not None else (
@@ -227,7 +238,7 @@ def finite_frame(
         values = (np.asarray(raw, dtype=np.float64) / scale).astype(dtype, copy=False)
     elif raw.dtype.kind in "iu":
         full_scale = _integer_scale(raw.dtype, index)
-        if _uses_few_bits(raw):
+        if few_bits_scale(raw) is not None:
             _warn(_few_bits(raw.dtype))
         values = (np.asarray(raw, dtype=np.float64) / full_scale).astype(dtype, copy=False)
     else:
