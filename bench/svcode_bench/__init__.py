@@ -15,3 +15,15 @@ It imports the installed core (``svcode_core``), never the reverse. The scripts 
 from their own folder; ``svcode bench`` and the tests add the checkout's ``bench`` folder to
 ``sys.path``.
 """
+
+#: the benchmark's regimes: name → the departures (:mod:`svcode_core.physics.departures`)
+#: of the instrument its test frames come from; here, where ``svcode bench --help`` reads
+#: them without importing torch
+REGIMES = {
+    "matched": "none",
+    "calibration": "calibration",
+    "model": "model",
+    "background": "background",
+    "low-light": "low-light",
+    "realistic": "realistic",
+}

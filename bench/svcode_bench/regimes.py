@@ -80,6 +80,7 @@ from svcode_core.physics.psf_io import model_psfs
 from svcode_core.physics.simulate import Simulator
 from svcode_core.pretrained import bundled_weights
 
+from . import REGIMES
 from .footprint import PeakMemory, model_footprint
 
 SCENES = (
@@ -92,14 +93,6 @@ SCENES = (
 )
 QUICK_SCENES = ("cells", "ihc")
 #: Regimes and the departure set each simulates; "matched" is the nominal system.
-REGIMES = {
-    "matched": "none",
-    "calibration": "calibration",
-    "model": "model",
-    "background": "background",
-    "low-light": "low-light",
-    "realistic": "realistic",
-}
 INVERSE_CRIME = "inverse crime: data simulated with the reconstructors' own forward model"
 ADMM_CHECKPOINTS = (10, 20, 50)
 QUICK_ADMM_CHECKPOINTS = (10, 30)

@@ -33,12 +33,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import skimage.color
-import skimage.io
-import skimage.transform
 import tifffile
-from scipy import ndimage, special
-from scipy.spatial import cKDTree
+from scipy import special
 
 __all__ = [
     "HELD_OUT_IMAGES",
@@ -99,6 +95,8 @@ def _to_unit(img: np.ndarray) -> np.ndarray:
 
 def _smooth_noise(rng: np.random.Generator, size: int, sigma: float) -> np.ndarray:
     """Gaussian-filtered white noise with unit standard deviation."""
+    from scipy import ndimage
+
     field = ndimage.gaussian_filter(rng.standard_normal((size, size)), sigma, mode="wrap")
     return field / max(field.std(), 1e-12)
 
@@ -318,6 +316,8 @@ def cells(
     numpy.ndarray
         float32 ``(size, size)`` in ``[0, 1]``, maximum 1.
     """
+    from scipy.spatial import cKDTree
+
     _check_size(size)
     n = _count(rng, density, REFERENCE_SIZE, "density")
     spacing = size / np.sqrt(n)
@@ -450,7 +450,10 @@ def neurons(
 @functools.cache
 def _bundled_images() -> tuple[np.ndarray, ...]:
     """Dark-background maps from images inside scikit-image's data folder (read once)."""
+    import skimage.color
     import skimage.data
+    import skimage.io
+    from scipy import ndimage
 
     folder = Path(skimage.data.__file__).parent
     paths = [folder / "hubble_deep_field.jpg", folder / "retina.jpg"]
@@ -487,6 +490,8 @@ Hubble deep field and the retina): grey levels turned into bright-on-dark maps b
 def _fluorescence_map(crop: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """A grey-level crop as a fluorescence-like map: as is, inverted, or its local
     contrast, with a random share of the dimmest pixels cut to a dark background."""
+    from scipy import ndimage
+
     choice = rng.integers(3)
     if choice == 1:
         crop = crop.max() - crop
@@ -510,6 +515,8 @@ def skimage_crop(size: int, rng: np.random.Generator) -> np.ndarray:
     numpy.ndarray
         float32 ``(size, size)`` in ``[0, 1]``.
     """
+    import skimage.transform
+
     _check_size(size)
     images = _bundled_images()
     image = images[rng.integers(len(images))]
@@ -702,6 +709,8 @@ def normalize_object(
     ValueError
         On NaN or Inf values, or percentiles out of range.
     """
+    from scipy import ndimage
+
     img = np.asarray(img, dtype=np.float64)
     if not np.isfinite(img).all():
         raise ValueError("image holds NaN or Inf values")
@@ -758,6 +767,10 @@ def from_image(
     ValueError
         If the image is not 2-D grey or RGB(A), or holds NaN or Inf.
     """
+    import skimage.color
+    import skimage.io
+    import skimage.transform
+
     _check_size(size)
     if isinstance(image_or_path, (str, Path)):
         path = Path(image_or_path)
@@ -791,6 +804,9 @@ HELD_OUT_IMAGES = ("cell.png", "ihc.png", "microaneurysms.png")
 
 def _held_out_map(name: str, image: np.ndarray) -> tuple[np.ndarray, float]:
     """A bright-on-dark map of one held-out image and the background percentile to cut."""
+    import skimage.color
+    from scipy import ndimage
+
     if name == "ihc.png":  # stained tissue: haematoxylin + DAB optical densities as dye
         stains = skimage.color.rgb2hed(image[..., :3])
         return stains[..., 0] + stains[..., 2], 50.0
@@ -826,6 +842,8 @@ def held_out_image(name: str, size: int) -> np.ndarray:
     FileNotFoundError
         If scikit-image does not ship the file.
     """
+    import skimage.io
+
     if name not in HELD_OUT_IMAGES:
         raise ValueError(f"unknown held-out image {name!r}; choose one of "
                          f"{', '.join(HELD_OUT_IMAGES)}")  # fmt: skip

@@ -36,9 +36,10 @@ _FAMILY = {"svcode": "svcode", "admm": "admm", "wiener": "deconvolution", "rl": 
 DEFAULT_METHODS = tuple(METHODS)
 
 
-def engine() -> ModuleType:
-    """The benchmark engine, ``svcode_bench.regimes``: importable as it is, or from the
-    checkout's ``bench`` folder (added to the end of ``sys.path``).
+def engine(module: str = "svcode_bench.regimes") -> ModuleType:
+    """The benchmark engine's ``module`` (default its ``regimes``; ``"svcode_bench"`` is
+    the light package, without torch): importable as it is, or from the checkout's
+    ``bench`` folder (added to the end of ``sys.path``).
 
     Raises
     ------
@@ -46,7 +47,7 @@ def engine() -> ModuleType:
         Outside a source checkout, with what to do instead.
     """
     try:
-        return importlib.import_module("svcode_bench.regimes")
+        return importlib.import_module(module)
     except ModuleNotFoundError as err:
         if err.name != "svcode_bench":
             raise
@@ -55,7 +56,7 @@ def engine() -> ModuleType:
                            '(bench/svcode_bench), not installed with the package: clone the '
                            'repository and run it there after pip install -e ".[bench]"')
     sys.path.append(str(CHECKOUT_BENCH))
-    return importlib.import_module("svcode_bench.regimes")
+    return importlib.import_module(module)
 
 
 def _method_names(text: str) -> tuple[str, ...]:
@@ -76,10 +77,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         + " Writes regimes.{json,md,png} to --out; the checkout's committed report "
         "(bench/results) only when named with --out, and then only a full run or --merge.",
     )
-    # the regimes are those of the benchmark (torch): imported for this command only; without
-    # the engine, run() says how to get it
+    # the regimes are the benchmark's (its light package, not the engine); without it, run()
+    # says how to get the engine
     try:
-        regimes = list(engine().REGIMES)
+        regimes = list(engine("svcode_bench").REGIMES)
     except NotInstalled:
         regimes = None
     parser.add_argument("--quick", action="store_true",
