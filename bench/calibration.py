@@ -38,7 +38,7 @@ from svcode_core.evaluation.metrics import psnr
 from svcode_core.methods.baselines import reconstruct_with_baseline
 from svcode_core.methods.baselines.self_registration import MAX_LENS_RESIDUAL_PX, self_register
 from svcode_core.phantoms import HELD_OUT_IMAGES, held_out_image
-from svcode_core.physics.calibration import calibrate
+from svcode_core.physics.calibration import Calibration, calibrate
 from svcode_core.physics.cm2 import CM2Operator
 from svcode_core.physics.departures import Departures
 from svcode_core.physics.scan import scan_grid, simulate_scan, with_dark_offset
@@ -48,6 +48,44 @@ RESULTS = Path(__file__).with_name("results")
 #: the drift checked by default: array shift and turn plus per-lens jitter
 DRIFT = Departures(name="drift", mla_shift_px=(1.0, -0.6), mla_rotation_deg=0.2,
                    lens_jitter_px=0.5, seed=14)
+#: the scanning camera's black level (above zero, so a dark frame removes it unbiased)
+DARK_OFFSET = 2e-3
+
+
+def scanner_for(nominal: SystemConfig, departures: Departures) -> Simulator:
+    """The departed instrument as it records a bead scan (the camera with a black level)."""
+    return Simulator(with_dark_offset(nominal, DARK_OFFSET), departures=departures)
+
+
+def scan_positions(nominal: SystemConfig, steps: int = 9, repeats: int = 4) -> np.ndarray:
+    """A ``steps × steps`` raster, each position ``repeats`` times in a row."""
+    return np.repeat(scan_grid(nominal, steps), repeats, axis=0)
+
+
+def chief_ray_error(calibration: Calibration, departures: Departures,
+                    nominal: SystemConfig) -> np.ndarray:  # fmt: skip
+    """``(9, 2)`` absolute error of the calibrated lens offsets, pixels per axis."""
+    return np.abs(calibration.offsets - departures.lens_offsets(nominal))
+
+
+def held_out_operators(nominal: SystemConfig, departures: Departures, calibration: Calibration
+                       ) -> tuple[Simulator, dict[str, tuple[SystemConfig, CM2Operator]]]:
+    """The instrument that records the held-out frames (nominal camera), and the
+    ``(system, operator)`` pairs LSV-ADMM is given: true instrument, calibrated, nominal."""
+    instrument = Simulator(nominal, departures=departures)
+    return instrument, {
+        "true instrument": (instrument.instrument.truth, instrument.operator),
+        "calibrated": (calibration.system, CM2Operator.from_psfs(calibration.system,
+                                                                 calibration.psfs)),
+        "nominal": (nominal, CM2Operator.from_system(nominal)),
+    }
+
+
+def admm_psnr(obj: np.ndarray, frame: np.ndarray, system: SystemConfig, operator: CM2Operator,
+              options: dict) -> float:  # fmt: skip
+    """PSNR (dB, data range 1) of LSV-ADMM's reconstruction of ``frame`` against ``obj``."""
+    recon = reconstruct_with_baseline("admm", frame, system, operator=operator, **options)
+    return psnr(obj, recon, data_range=1.0)
 
 
 def main() -> int:
@@ -67,22 +105,16 @@ def main() -> int:
     nominal = SystemConfig.preset("cm2-mini")
     departures = DRIFT if args.departures is None else Departures.named(args.departures, nominal)
     start = time.perf_counter()
-    scanner = Simulator(with_dark_offset(nominal, 2e-3), departures=departures)
-    positions = np.repeat(scan_grid(nominal, 9), args.repeats, axis=0)
+    scanner = scanner_for(nominal, departures)
+    positions = scan_positions(nominal, 9, args.repeats)
     frames, dark = simulate_scan(scanner, positions, brightness=args.brightness, seed=1)
     scanned = time.perf_counter()
     calibration = calibrate(frames, positions, nominal, dark=dark, tolerance=args.tolerance)
     calibrated = time.perf_counter()
-    ray_error = np.abs(calibration.offsets - departures.lens_offsets(nominal))
+    ray_error = chief_ray_error(calibration, departures, nominal)
     print(f"scan {scanned - start:.0f} s, calibration {calibrated - scanned:.0f} s, "
           f"chief-ray error max {ray_error.max():.3f} px", flush=True)
-    instrument = Simulator(nominal, departures=departures)
-    operators = {
-        "true instrument": (instrument.instrument.truth, instrument.operator),
-        "calibrated": (calibration.system, CM2Operator.from_psfs(calibration.system,
-                                                                 calibration.psfs)),
-        "nominal": (nominal, CM2Operator.from_system(nominal)),
-    }
+    instrument, operators = held_out_operators(nominal, departures, calibration)
     true_offsets = departures.lens_offsets(nominal)
     relative = true_offsets - true_offsets[4]
     rows = []
@@ -105,9 +137,7 @@ def main() -> int:
         print(name, "registration", row["registration_error_px"], flush=True)
         for label, (system, operator) in {**operators,
                                           "self-registered": (moved, moved_operator)}.items():
-            recon = reconstruct_with_baseline("admm", frame, system, operator=operator,
-                                              **options)  # fmt: skip
-            row[label] = psnr(obj, recon, data_range=1.0)
+            row[label] = admm_psnr(obj, frame, system, operator, options)
             print(name, label, f"{row[label]:.2f} dB", flush=True)
         rows.append(row)
     labels = [*operators, "self-registered"]
