@@ -72,9 +72,9 @@ def test_a_command_builds_only_its_own_parser():
     assert out.stdout.strip() == "[]"
 
 
-#: the help that needs no torch: train's and bench's quote constants of the training code
-#: and the benchmark, which import it
-_LIGHT_HELP = ("", "reconstruct", "simulate", "demo", "dataset", "calibrate")
+#: every command's help: none needs torch (train and bench read their constants from
+#: torch-free modules)
+_LIGHT_HELP = ("", "reconstruct", "simulate", "demo", "dataset", "calibrate", "train", "bench")
 
 
 @pytest.mark.parametrize("command", _LIGHT_HELP)

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import pytest
 import torch
@@ -10,6 +12,45 @@ import torch
 from svcode_core.cli import main
 from svcode_core.methods.model_file import load_model
 from svcode_core.training import TrainingData
+
+
+def test_train_and_dataset_help_import_no_torch():
+    """The ``train`` and ``dataset`` parsers (defaults and help included) are built from the
+    torch-free settings and zones: their ``--help`` starts without torch."""
+    code = (
+        "import sys\n"
+        "from svcode_core.cli import build_parser, main\n"
+        "build_parser(('train', 'dataset'))\n"
+        "try:\n"
+        "    main(['train', '--help'])\n"
+        "except SystemExit:\n"
+        "    pass\n"
+        "print(sorted(m for m in ('torch', 'pytorch_msssim', 'skimage') if m in sys.modules),\n"
+        "      file=sys.stderr)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)  # fmt: skip
+    assert "usage: svcode train" in out.stdout and "--edge-weight" in out.stdout
+    assert out.stderr.strip() == "[]"
+
+
+def test_settings_and_zones_keep_their_old_homes():
+    """The constants and defaults moved to torch-free modules are the same objects where
+    they were, and the lazy ``svcode_core.training`` exports every name it lists."""
+    import svcode_core.training as training
+    from svcode_core.evaluation import metrics, zones
+    from svcode_core.training import configs, loss, settings, trainer
+
+    assert trainer.TrainConfig is settings.TrainConfig is training.TrainConfig
+    assert configs.ABLATIONS is settings.ABLATIONS
+    assert (metrics.RING_RADIUS, metrics.CENTRE_RADIUS) == (zones.RING_RADIUS,
+                                                            zones.CENTRE_RADIUS)
+    assert loss.EDGE_STRIP == zones.EDGE_STRIP and loss.RING_RADIUS == zones.RING_RADIUS
+    assert set(training.__all__) <= set(dir(training))
+    for name in training.__all__:
+        assert getattr(training, name).__name__ == name
+    with pytest.raises(AttributeError, match="no attribute 'nothing'"):
+        training.nothing  # noqa: B018
 
 
 def test_dataset_then_train(tiny_system, tiny_model_config, tmp_path, capsys):

@@ -21,11 +21,9 @@ from . import (
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Register ``svcode train``."""
-    # torch: the training defaults and the loss's constants live with the training code
-    from ..evaluation.metrics import RING_RADIUS
-    from ..training.configs import ABLATIONS
-    from ..training.loss import EDGE_STRIP
-    from ..training.trainer import TrainConfig
+    # the torch-free homes of the training defaults and the field's zones: no torch for --help
+    from ..evaluation.zones import EDGE_STRIP, RING_RADIUS
+    from ..training.settings import ABLATIONS, TrainConfig
 
     defaults = TrainConfig()
     parser = subparsers.add_parser(

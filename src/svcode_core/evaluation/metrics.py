@@ -23,6 +23,7 @@ import torch
 from skimage.metrics import structural_similarity
 
 from ..physics.geometry import field_radius
+from .zones import CENTRE_RADIUS, RING_RADIUS
 
 __all__ = [
     "CENTRE_RADIUS",
@@ -33,9 +34,6 @@ __all__ = [
     "psnr",
     "ssim",
 ]
-
-CENTRE_RADIUS = 0.5
-RING_RADIUS = 0.8
 
 
 def _check_pair(truth: np.ndarray, estimate: np.ndarray, data_range: float) -> tuple:

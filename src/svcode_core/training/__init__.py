@@ -1,19 +1,33 @@
 """Training SV-CoDe and the learned baselines from physics simulations: data, samplers,
 loss, tasks and trainer."""
 
-from .dataset import DataRecipe, TrainingData, generate_dataset, split_frames, training_object
-from .distributed import DistInfo, init_distributed, shutdown_distributed
-from .loss import (
-    field_weights,
-    joint_loss,
-    psnr_per_sample,
-    ssim_per_sample,
-    stage_loss,
-    svcode_loss,
-)
-from .sampler import EpochSampler, FrameDataset, PatchDataset, check_disjoint_view_patches
-from .tasks import FrameTask, PatchTask, training_task
-from .trainer import TrainConfig, Trainer
+import importlib
+
+#: each exported name → the module that defines it, imported on first use (PEP 562), so
+#: that :mod:`.settings` (and ``svcode train --help``, which quotes it) loads no torch
+_EXPORTS = {
+    **dict.fromkeys(("DataRecipe", "TrainingData", "generate_dataset", "split_frames",
+                     "training_object"), ".dataset"),
+    **dict.fromkeys(("DistInfo", "init_distributed", "shutdown_distributed"), ".distributed"),
+    **dict.fromkeys(("field_weights", "joint_loss", "psnr_per_sample", "ssim_per_sample",
+                     "stage_loss", "svcode_loss"), ".loss"),
+    **dict.fromkeys(("EpochSampler", "FrameDataset", "PatchDataset",
+                     "check_disjoint_view_patches"), ".sampler"),
+    **dict.fromkeys(("FrameTask", "PatchTask", "training_task"), ".tasks"),
+    "TrainConfig": ".settings",
+    "Trainer": ".trainer",
+}
+
+
+def __getattr__(name: str):
+    if name not in _EXPORTS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(_EXPORTS[name], __name__), name)
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_EXPORTS])
+
 
 __all__ = [
     "DataRecipe",

@@ -13,18 +13,12 @@ from pathlib import Path
 from ..methods import registry
 from ..methods.learned import LEARNED_MODELS, FourierNetConfig, MultiWienerConfig
 from ..network import ModelConfig
+from .settings import ABLATIONS
 
 __all__ = ["ABLATIONS", "AnyModelConfig", "config_class", "model_config_from",
            "with_svcode_options"]
 
 AnyModelConfig = ModelConfig | MultiWienerConfig | FourierNetConfig
-
-#: SV-CoDe ablations: name → the configuration fields they change
-ABLATIONS = {
-    "none": {},
-    "no-coordgate": {"coord_gate": False},
-    "no-pe": {"positional_encoding": False},
-}
 
 
 def config_class(method: str) -> type:

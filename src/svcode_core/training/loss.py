@@ -23,7 +23,8 @@ from collections.abc import Mapping
 import torch
 from pytorch_msssim import ssim
 
-from ..evaluation.metrics import RING_RADIUS, psnr_from_mse
+from ..evaluation.metrics import psnr_from_mse
+from ..evaluation.zones import EDGE_STRIP, RING_RADIUS
 from ..physics.geometry import normalized_coordinates
 
 __all__ = ["EDGE_STRIP", "field_weights", "joint_loss", "psnr_per_sample", "ssim_per_sample",
@@ -31,8 +32,6 @@ __all__ = ["EDGE_STRIP", "field_weights", "joint_loss", "psnr_per_sample", "ssim
 
 #: Smallest MSE used by :func:`psnr_per_sample` (caps the PSNR of a perfect patch at 100 dB).
 MIN_MSE = 1e-10
-#: Width in sub-view pixels of the edge strips that :func:`field_weights` weighs.
-EDGE_STRIP = 16
 
 
 def _check(prediction: torch.Tensor, target: torch.Tensor) -> None:
@@ -110,7 +109,7 @@ def field_weights(
 ) -> torch.Tensor:
     """Loss weights of square crops of a sub-view: ``edge`` on the pixels within ``strip``
     pixels of the sub-view's edge, ``ring`` on the outer ring (normalised field radius
-    above :data:`~svcode_core.evaluation.metrics.RING_RADIUS`, the benchmark's zone), their
+    above :data:`~svcode_core.evaluation.zones.RING_RADIUS`, the benchmark's zone), their
     product where both hold, 1 elsewhere.
 
     Parameters
