@@ -13,6 +13,7 @@ from svcode_core.config import OpticsConfig, SystemConfig, system_from_scale
 from svcode_core.evaluation.metrics import psnr
 from svcode_core.methods.baselines import BaselineReconstructor, reconstruct_with_baseline
 from svcode_core.methods.baselines.admm import LsvAdmm
+from svcode_core.methods.baselines.deconv import ShiftInvariantDeconvolution
 from svcode_core.methods.registry import MODEL_BASED_METHODS
 from svcode_core.physics.cm2 import CM2Operator
 from svcode_core.physics.noise import apply_sensor_noise
@@ -104,8 +105,14 @@ def test_dynamic_range_of_1e4(tiny_system, op):
     raw = op.measure(truth).numpy()
     for method, recon in run_all(tiny_system, op, raw).items():
         assert np.isfinite(recon).all(), method
-        # stated error: the bright square's flux within 25 %
         flux = recon[20:28, 20:28].sum() / 64
+        if method in ("wiener", "rl"):
+            # their stated scaling: an isolated object comes out divided by their response
+            # to a uniform object there (the crosstalk a uniform scene adds and an isolated
+            # object does not; ShiftInvariantDeconvolution, step 4)
+            solver = ShiftInvariantDeconvolution(op, method, **OPTIONS[method])
+            flux *= float(solver.flat_response[20:28, 20:28].mean())
+        # stated error: the bright square's flux within 25 %
         assert flux == pytest.approx(1.0, rel=0.25), method
 
 

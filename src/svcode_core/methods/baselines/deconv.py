@@ -25,7 +25,10 @@ between lenses (design.md §4):
    sub-view also holds the light its neighbours' lenses cast into it (the crosstalk these
    methods do not model), so without this step the fused image is several times the
    object (about 4.5× on average for ``cm2-mini``, 2.7× in the centre and more towards
-   the edges); with it, a uniform object comes back as itself.
+   the edges); with it, a uniform object comes back as itself. No single scale fits every
+   scene, because the crosstalk lands elsewhere than the object that casts it: an
+   extended scene (tissue, cells) comes out near its own level, an isolated bright object
+   at about a third of it on ``cm2-mini`` (its flux divided by the response there).
 
 The per-view filters follow scikit-image's conventions exactly, so that on a truly
 shift-invariant image they agree with it:
