@@ -471,8 +471,12 @@ def run_benchmark(
             new += svcode_rows(weights, system, scenes, all_knobs=knobs, cache=cache,
                                footprint=not quick)  # fmt: skip
         for path in ablations:
-            new += svcode_rows(path, system, scenes, all_knobs=False, cache=cache,
-                               footprint=not quick)  # fmt: skip
+            extra = svcode_rows(path, system, scenes, all_knobs=False, cache=cache,
+                                footprint=not quick)  # fmt: skip
+            if weights is not None and model_label(path) == model_label(weights):
+                for row in extra:  # the same network as the main rows: told apart by file
+                    row.method += f" ({path.parent.name}/{path.name})"
+            new += extra
         if "learned" in methods:
             for path in learned:
                 new += learned_rows(path, system, scenes, cache=cache)
