@@ -16,7 +16,7 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 #: the core's parts, lowest layer first: a part imports only itself and lower layers (the
 #: top-level modules of the first layer also each other)
 LAYERS = (
-    ("config", "extras", "io", "outputs", "phantoms", "pretrained"),
+    ("config", "extras", "io", "lazy", "outputs", "phantoms", "pretrained"),
     ("physics",),
     ("network",),
     ("methods", "evaluation"),

@@ -4,7 +4,7 @@ Physics simulation of computational miniature mesoscopes (CM²), the SV-CoDe net
 tiled inference, training, baselines and metrics. No Qt is imported anywhere here.
 """
 
-import importlib
+from .lazy import lazy_exports
 
 #: each exported name → the module that defines it, imported on first use (PEP 562), so
 #: that ``import svcode_core`` (and the ``svcode`` command's help) loads no torch
@@ -17,14 +17,7 @@ _EXPORTS = {
 }
 
 
-def __getattr__(name: str):
-    if name not in _EXPORTS:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    return getattr(importlib.import_module(_EXPORTS[name], __name__), name)
-
-
-def __dir__() -> list[str]:
-    return sorted([*globals(), *_EXPORTS])
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())
 
 
 __version__ = "0.1.0"

@@ -8,7 +8,7 @@
 * :mod:`.frames`: how raw frames are checked and scaled; :mod:`.model_file`: model files.
 """
 
-import importlib
+from ..lazy import lazy_exports
 
 #: each exported name → the module that defines it, imported on first use (PEP 562), so
 #: that :mod:`.registry` is imported without torch
@@ -20,14 +20,7 @@ _EXPORTS = {
 }
 
 
-def __getattr__(name: str):
-    if name not in _EXPORTS:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    return getattr(importlib.import_module(_EXPORTS[name], __name__), name)
-
-
-def __dir__() -> list[str]:
-    return sorted([*globals(), *_EXPORTS])
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())
 
 
 __all__ = [

@@ -1,7 +1,7 @@
 """Training SV-CoDe and the learned baselines from physics simulations: data, samplers,
 loss, tasks and trainer."""
 
-import importlib
+from ..lazy import lazy_exports
 
 #: each exported name → the module that defines it, imported on first use (PEP 562), so
 #: that :mod:`.settings` (and ``svcode train --help``, which quotes it) loads no torch
@@ -19,14 +19,7 @@ _EXPORTS = {
 }
 
 
-def __getattr__(name: str):
-    if name not in _EXPORTS:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    return getattr(importlib.import_module(_EXPORTS[name], __name__), name)
-
-
-def __dir__() -> list[str]:
-    return sorted([*globals(), *_EXPORTS])
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())
 
 
 __all__ = [
