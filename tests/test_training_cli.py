@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import pytest
 import torch
@@ -12,26 +10,6 @@ import torch
 from svcode_core.cli import main
 from svcode_core.methods.model_file import load_model
 from svcode_core.training import TrainingData
-
-
-def test_train_and_dataset_help_import_no_torch():
-    """The ``train`` and ``dataset`` parsers (defaults and help included) are built from the
-    torch-free settings and zones: their ``--help`` starts without torch."""
-    code = (
-        "import sys\n"
-        "from svcode_core.cli import build_parser, main\n"
-        "build_parser(('train', 'dataset'))\n"
-        "try:\n"
-        "    main(['train', '--help'])\n"
-        "except SystemExit:\n"
-        "    pass\n"
-        "print(sorted(m for m in ('torch', 'pytorch_msssim', 'skimage') if m in sys.modules),\n"
-        "      file=sys.stderr)\n"
-    )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True)  # fmt: skip
-    assert "usage: svcode train" in out.stdout and "--edge-weight" in out.stdout
-    assert out.stderr.strip() == "[]"
 
 
 def test_settings_and_zones_keep_their_old_homes():
