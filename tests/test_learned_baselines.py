@@ -271,9 +271,16 @@ def test_reconstructor_matches_the_model_and_refuses_bad_input(method, operator,
         # by default each frame is brought to the reference level and the output scaled back
         gain = exposure_gain(raw[0])
         normalised = model(pad_sensor_frame(torch.from_numpy(raw[:1] * gain), system))[0, 0]
-    np.testing.assert_allclose(MethodSpec(method, system, str(path))().reconstruct(
-        raw[0]).reconstruction, normalised.numpy() / gain, rtol=1e-5,
+    normalising = MethodSpec(method, system, str(path))()
+    np.testing.assert_allclose(normalising.reconstruct(raw[0]).reconstruction,
+        normalised.numpy() / gain, rtol=1e-5,
         atol=64 * np.finfo(np.float32).eps * float(np.abs(normalised).max()) / gain)
+    # the gain recorded is the one used, from the frame in units of the full scale, however
+    # the frame is stored (16-bit counts here), and 1 for the method that does not normalise
+    counts = np.round(np.clip(raw[0], 0, 1) * 65535).astype(np.uint16)
+    assert normalising.reconstruct(counts).exposure_gains == pytest.approx(
+        [exposure_gain(counts / 65535.0)], rel=1e-6)
+    assert result.exposure_gains is None
     # frame by frame against a batch of two: float32 FFTs and convolutions sum in another
     # order, so agreement is to a few float32 ulps of the image scale, not bit for bit
     atol = 64 * np.finfo(np.float32).eps * float(np.abs(expected).max())

@@ -272,11 +272,6 @@ class FrameByFrame(BaseReconstructor):
     def start_stack(self) -> None:
         """Called before the first frame of every input (e.g. to drop a warm start)."""
 
-    def exposure_gain(self, frame: np.ndarray) -> float | None:
-        """The factor a learned method brings ``frame`` (non-negative) to its training
-        level with (:mod:`~svcode_core.methods.exposure`); ``None``: the method does not."""
-        return None
-
     @abstractmethod
     def reconstruct_frame(
         self, frame: np.ndarray, index: int, return_views: bool
@@ -307,7 +302,7 @@ class FrameByFrame(BaseReconstructor):
         stack = self.check_frames(frames)
         start = time.perf_counter()
         self.start_stack()
-        recons, views, gains = [], [], []
+        recons, views = [], []
         count, total = len(stack), self.frame_steps
         for index, frame in enumerate(stack):
             if cancel is not None and cancel.is_set():
@@ -332,15 +327,10 @@ class FrameByFrame(BaseReconstructor):
                 view = np.zeros((9, size, size), np.float32) if return_views else None
             recons.append(recon)
             views.append(view)
-            gains.append(self.exposure_gain(np.maximum(frame, 0)))
         recon = np.stack(recons)
         view_array = np.stack(views) if return_views else None
         if single:
             recon = recon[0]
             view_array = None if view_array is None else view_array[0]
-        return ReconstructionResult(
-            recon,
-            view_array,
-            timings={"total": time.perf_counter() - start},
-            exposure_gains=None if gains[0] is None else np.array(gains),
-        )
+        return ReconstructionResult(recon, view_array,
+                                    timings={"total": time.perf_counter() - start})

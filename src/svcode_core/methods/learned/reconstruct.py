@@ -10,6 +10,8 @@ brought to one exposure level before the network and the output scaled back
 
 from __future__ import annotations
 
+import threading
+from collections.abc import Generator
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +22,13 @@ from torch import nn
 from ...config import SystemConfig
 from ...physics.geometry import pad_sensor_frame
 from .. import registry
-from ..base import FrameByFrame, precision_dtype, resolve_device
+from ..base import (
+    FrameByFrame,
+    FrameProgress,
+    ReconstructionResult,
+    precision_dtype,
+    resolve_device,
+)
 from ..exposure import exposure_gain
 from ..frames import finite_frame
 from ..registry import LEARNED_METHODS, method_of_architecture
@@ -67,6 +75,7 @@ class LearnedReconstructor(FrameByFrame):
         self.system = system
         self.precision = precision
         self.normalise_exposure = bool(normalise_exposure)
+        self._gains: dict[int, float] = {}
 
     @classmethod
     def build(
@@ -116,15 +125,25 @@ class LearnedReconstructor(FrameByFrame):
         model, trained = load_model(path, system=system, device=options.get("device", "cpu"))
         return cls(model, trained if system is None else system, **options)
 
-    def exposure_gain(self, frame: np.ndarray) -> float | None:
-        return exposure_gain(frame) if self.normalise_exposure else None
+    def start_stack(self) -> None:
+        self._gains = {}  # each frame's exposure gain, by index
+
+    def iter_reconstruct(
+        self, frames: Any, return_views: bool = False, cancel: threading.Event | None = None
+    ) -> Generator[FrameProgress, None, ReconstructionResult]:
+        result = yield from super().iter_reconstruct(frames, return_views, cancel)
+        if self.normalise_exposure:  # a blank frame is 0, whatever its gain: 1 as for SV-CoDe
+            count = 1 if result.reconstruction.ndim == 2 else len(result.reconstruction)
+            result.exposure_gains = np.array([self._gains.get(i, 1.0) for i in range(count)])
+        return result
 
     def reconstruct_frame(
         self, frame: np.ndarray, index: int, return_views: bool
     ) -> tuple[np.ndarray, None]:
         """One raw frame → its float32 reconstruction (these methods do not demix)."""
         values = finite_frame(frame, index)
-        gain = self.exposure_gain(np.maximum(values, 0.0)) or 1.0
+        gain = exposure_gain(np.maximum(values, 0.0)) if self.normalise_exposure else 1.0
+        self._gains[index] = gain
         padded = pad_sensor_frame(
             torch.from_numpy(values * np.float32(gain)).to(self.device), self.system
         )
