@@ -338,6 +338,22 @@ def test_gated_convolution(block, level, layer, monkeypatch):
     assert (error <= bound).all(), f"worst error / bound {(error / bound).max():.3g}"
 
 
+#: the blocks the block tests run: the view block (nine lenses, channels first) and a level-1
+#: U-Net block (channels last), with their levels
+BLOCKS = (("demix.view_block", 0), ("demix.unet.encoders.1.0", 1))
+
+
+def _block_input(model, name: str, level: int, tiles: int, shape) -> tuple:
+    """Block ``name`` of ``model`` and a random input of ``tiles`` tiles of ``shape`` (at
+    the block's level), in the memory layout the model runs it in."""
+    block = model.get_submodule(name)
+    c, views = block.beta.shape[1], LENSES if "view" in name else 1
+    x = torch.randn(tiles * views, c, shape[0] >> level, shape[1] >> level)
+    if views == 1:  # as the U-Net runs
+        x = x.contiguous(memory_format=torch.channels_last)
+    return block, x
+
+
 @pytest.mark.parametrize("path", PATHS)
 @pytest.mark.parametrize("origins", ORIGINS.values(), ids=ORIGINS.keys())
 @pytest.mark.parametrize("config", [SMALL, LATTICE], ids=["exact", "lattice"])
@@ -348,12 +364,8 @@ def test_code_block(config, origins, path, monkeypatch):
     model = _model(config)
     P, shape = state64(model), (16, 24)
     torch.manual_seed(2)
-    for name, level in (("demix.view_block", 0), ("demix.unet.encoders.1.0", 1)):
-        block = model.get_submodule(name)
-        c, views = block.beta.shape[1], LENSES if "view" in name else 1
-        x = torch.randn(len(origins) * views, c, shape[0] >> level, shape[1] >> level)
-        if views == 1:  # as the U-Net runs
-            x = x.contiguous(memory_format=torch.channels_last)
+    for name, level in BLOCKS:
+        block, x = _block_input(model, name, level, len(origins), shape)
         per_tile = [block_masks(P, name, config, level, o, shape, S) for o in origins]
         ref = code_block(P, name, x.to(F64), [torch.stack(m) for m in zip(*per_tile, strict=True)])
         with _on_path(model, path, monkeypatch):
@@ -413,12 +425,8 @@ def test_fast_block_equals_plain_block(config, origins, path, monkeypatch):
     model = _model(config)
     shape, tiles = (16, 24), torch.tensor(origins)
     torch.manual_seed(2)
-    for name, level in (("demix.view_block", 0), ("demix.unet.encoders.1.0", 1)):
-        block = model.get_submodule(name)
-        c, views = block.beta.shape[1], LENSES if "view" in name else 1
-        x = torch.randn(len(origins) * views, c, shape[0] >> level, shape[1] >> level)
-        if views == 1:  # as the U-Net runs
-            x = x.contiguous(memory_format=torch.channels_last)
+    for name, level in BLOCKS:
+        block, x = _block_input(model, name, level, len(origins), shape)
         with _on_path(model, "plain", monkeypatch):
             plain = block(x, model.masks_for(tiles, S, shape)(block, level))
         with _on_path(model, path, monkeypatch):
