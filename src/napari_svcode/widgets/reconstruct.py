@@ -37,7 +37,7 @@ from svcode_core.methods import (
     iter_method,
 )
 from svcode_core.methods.base import FrameProgress, ReconstructionResult, check_frame_shape
-from svcode_core.methods.frames import few_bits_scale, frame_warnings
+from svcode_core.methods.frames import few_bits_scale, few_bits_warning, frame_warnings
 
 from .._errors import LOG, notify_error, notify_warning
 from .._layers import (
@@ -212,8 +212,8 @@ class ReconstructWidget(Container):
         self._command_text.read_only = True
         super().__init__(widgets=[
             self._layer, self._panel, self._compare, self._second, self._truth, self._device,
-            self._full_scale, self._views, self._warning, self._run, self._cancel, self._progress, self._status,
-            self._results, self._command, self._command_text,
+            self._full_scale, self._views, self._warning, self._run, self._cancel,
+            self._progress, self._status, self._results, self._command, self._command_text,
         ])
         self._second.visible = False
         self._warning.visible = False
@@ -243,7 +243,7 @@ class ReconstructWidget(Container):
         fitting = few_bits_scale(frames) if scale is None else None
         for problem, fix in frame_warnings(frames, scale):
             actions = ()
-            if fitting is not None and "bits" in problem:
+            if fitting is not None and (problem, fix) == few_bits_warning(frames.dtype):
                 actions = ((f"Use {fitting:g}", lambda _toast: self._use_full_scale(fitting)),)
             notify_warning(problem, fix, actions)
 

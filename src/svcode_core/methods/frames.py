@@ -49,6 +49,7 @@ __all__ = [
     "as_frame_stack",
     "finite_frame",
     "few_bits_scale",
+    "few_bits_warning",
     "frame_warnings",
     "require_frames",
 ]
@@ -110,7 +111,9 @@ def _integer_scale(dtype: np.dtype, index: int) -> float:
 
 # What the checks warn about, as (problem, what to do): warnings.warn joins the two with
 # ": "; a front end can show them apart (frame_warnings).
-def _few_bits(dtype: np.dtype) -> tuple[str, str]:
+def few_bits_warning(dtype: np.dtype) -> tuple[str, str]:
+    """The warning about frames of integer ``dtype`` that use at most 12 bits (one of
+    :func:`frame_warnings`' pairs), for a front end to recognise."""
     return (f"{dtype} frames that use at most 12 bits are divided by "
             f"{np.iinfo(dtype).max}, their type's full scale",
             "if the sensor has fewer bits, pass its full-scale count instead "
@@ -159,7 +162,7 @@ def frame_warnings(frames: Any, scale: float | None = None) -> list[tuple[str, s
     stack = as_frame_stack(frames)
     found = []
     if scale is None and few_bits_scale(stack) is not None:
-        found.append(_few_bits(stack.dtype))
+        found.append(few_bits_warning(stack.dtype))
     top = float(stack.max()) if stack.size else 0.0
     full = scale if scale is not None else (
         float(np.iinfo(stack.dtype).max) if stack.dtype.kind in "iu" else 1.0)
@@ -239,7 +242,7 @@ def finite_frame(
     elif raw.dtype.kind in "iu":
         full_scale = _integer_scale(raw.dtype, index)
         if few_bits_scale(raw) is not None:
-            _warn(_few_bits(raw.dtype))
+            _warn(few_bits_warning(raw.dtype))
         values = (np.asarray(raw, dtype=np.float64) / full_scale).astype(dtype, copy=False)
     else:
         values = np.asarray(raw, dtype=dtype)
