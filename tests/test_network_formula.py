@@ -33,6 +33,7 @@ import math
 import pytest
 import torch
 import torch.nn.functional as F
+from test_network_lattice import visible_model
 
 from svcode_core.methods.model_file import load_model
 from svcode_core.network import ModelConfig, SVCoDe, lattice
@@ -261,16 +262,6 @@ MODEL_ULPS = 1024
 ROUTES_BLOCK_ULPS = 100
 
 
-def _model(config: ModelConfig, seed: int = 0) -> SVCoDe:
-    torch.manual_seed(seed)
-    model = SVCoDe(config).eval()
-    with torch.no_grad():  # β and γ start at zero: give every mask a visible effect
-        for name, param in model.named_parameters():
-            if name.endswith(("beta", "gamma")):
-                param.normal_(0.0, 0.5)
-    return model
-
-
 @contextlib.contextmanager
 def _on_path(model: SVCoDe, path: str, monkeypatch):
     """Run ``model`` on ``path``: the plain route, or the fast one for inference without or
@@ -305,7 +296,7 @@ def _ulps(out: torch.Tensor, ref: torch.Tensor) -> float:
 def test_gated_convolution(block, level, layer, monkeypatch):
     """``CoordGate.forward`` equals ``M(r) ⊙ conv`` with the MLP evaluated at each pixel's
     global coordinate, within a per-element float32 forward-error bound."""
-    model = _model(SMALL)
+    model = visible_model(SMALL)
     gate = model.get_submodule(f"{block}.{layer}")
     origins, shape = ORIGINS["unaligned"], (16, 12)
     monkeypatch.setattr(model, "fast_masks", False)
@@ -361,7 +352,7 @@ def test_code_block(config, origins, path, monkeypatch):
     """A CoDe block on the model's paths (plain or folded masks; exact or lattice) equals the
     block formula, for the view block (nine lenses, channels first) and a level-1 U-Net block
     (channels last); a cached block twice (masks computed, then read)."""
-    model = _model(config)
+    model = visible_model(config)
     P, shape = state64(model), (16, 24)
     torch.manual_seed(2)
     for name, level in BLOCKS:
@@ -380,7 +371,7 @@ def test_code_block(config, origins, path, monkeypatch):
 def test_svcode_random_weights(config, origins, path, monkeypatch):
     """The whole model with random weights equals the reference, on tiles padded to the
     stride."""
-    model = _model(config)
+    model = visible_model(config)
     torch.manual_seed(3)
     views = torch.rand(len(origins), LENSES * config.views_per_lens, 13, 22)
     ref = svcode(state64(model), config, views, origins, S)
@@ -422,7 +413,7 @@ def _blocks(model: SVCoDe) -> int:
 @pytest.mark.parametrize("config", [SMALL, LATTICE], ids=["exact", "lattice"])
 def test_fast_block_equals_plain_block(config, origins, path, monkeypatch):
     """A CoDe block on each fast path equals the same block on the plain route."""
-    model = _model(config)
+    model = visible_model(config)
     shape, tiles = (16, 24), torch.tensor(origins)
     torch.manual_seed(2)
     for name, level in BLOCKS:
@@ -441,7 +432,7 @@ def test_fast_block_equals_plain_block(config, origins, path, monkeypatch):
 def test_fast_model_equals_plain_model_random_weights(config, origins, path, monkeypatch):
     """The whole model on each fast path equals it on the plain route: the blocks'
     differences, of random sign, add in quadrature (sqrt(blocks) x ROUTES_BLOCK_ULPS)."""
-    model = _model(config)
+    model = visible_model(config)
     torch.manual_seed(3)
     views = torch.rand(len(origins), LENSES * config.views_per_lens, 13, 22)
     with _on_path(model, "plain", monkeypatch):

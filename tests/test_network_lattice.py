@@ -33,7 +33,8 @@ TINY = ModelConfig(
 ROUTES_RTOL = 64 * torch.finfo(torch.float32).eps
 
 
-def _model(config: ModelConfig, seed: int = 0) -> SVCoDe:
+def visible_model(config: ModelConfig, seed: int = 0) -> SVCoDe:
+    """A random model whose masks all act (β and γ drawn instead of zero)."""
     torch.manual_seed(seed)
     model = SVCoDe(config).eval()
     with torch.no_grad():  # β and γ start at zero: give every mask a visible effect
@@ -106,7 +107,7 @@ def test_both_interpolation_routes_match_bilinear_upsampling(lenses):
 
 
 def test_nodes_are_reproduced_exactly_and_spacing_one_is_exact():
-    model = _model(TINY)
+    model = visible_model(TINY)
     exact = _same_weights(model, TINY.replace(mask_spacing=0))
     unit = _same_weights(model, TINY.replace(mask_spacing=1))
     views = torch.rand(2, 9, 32, 32)
@@ -126,7 +127,7 @@ def test_nodes_are_reproduced_exactly_and_spacing_one_is_exact():
 def test_lattice_masks_depend_only_on_the_global_position():
     """A tile's masks are the crop of a whole-sub-view tile's masks (the lattice does
     not move with the tile), on both interpolation routes."""
-    model = _model(TINY)
+    model = visible_model(TINY)
     block = model.demix.unet.encoders[1][0]
     whole = model.masks_for(torch.tensor([[0, 0]]), S, (S, S)).grids[1]
     (reference,) = whole.tile_masks(fold(block, whole.enc_row, whole.enc_col))
@@ -144,7 +145,7 @@ def test_lattice_masks_depend_only_on_the_global_position():
 
 def test_tiled_output_equals_whole_sub_view_output_inside():
     """Pixels far from every tile border agree between a tile and the whole sub-view."""
-    model = _model(TINY)
+    model = visible_model(TINY)
     views = torch.rand(1, 9, S, S)
     with torch.no_grad():
         _, whole = model(views, [[0, 0]], S)
@@ -200,7 +201,7 @@ def test_masks_used_once_are_written_out_only_when_they_fit_in_one_band():
 
 
 def test_gradients_reach_the_mask_mlps_through_the_interpolation():
-    model = _model(TINY).train()
+    model = visible_model(TINY).train()
     views = torch.rand(2, 9, 32, 32)
     demixed, recon = model(views, [[0, 0], [8, 16]], S)
     (demixed.square().mean() + recon.square().mean()).backward()
@@ -223,7 +224,7 @@ def test_old_model_files_load_exact(tmp_path, tiny_system):
 def test_cached_lattice_masks_give_the_same_output_and_are_read_on_the_next_frame(
         band_bytes, monkeypatch):
     monkeypatch.setattr(lattice, "BAND_BYTES", band_bytes)
-    model = _model(TINY)
+    model = visible_model(TINY)
     views = torch.rand(3, 9, 32, 32)
     origins = [[0, 0], [24, 40], [0, 0]]  # two tiles share a place
     with torch.inference_mode():
