@@ -103,11 +103,11 @@ class FoldedMasks:
     def run(self, block: nn.Module, x: torch.Tensor) -> torch.Tensor:
         """``block(x)`` on folded masks; ``x`` is ``(B·V, c, h, w)``."""
         m1, m2, m3, m4, m5 = zip(*self.tile_masks(block, x), strict=True)
-        z = _multiply(block.conv1.conv(block.norm1(x)), m1)
-        z = _multiply(block.gate(block.conv2.conv(z)), m2)
-        y = _add_product(x, m3, block.conv3.conv(block.sca(z)))
-        z = _multiply(block.gate(block.conv4.conv(block.norm2(y))), m4)
-        return _add_product(y, m5, block.conv5.conv(z))
+        z = _multiply(_conv(block.conv1.conv, block.norm1(x)), m1)
+        z = _multiply(block.gate(_conv(block.conv2.conv, z)), m2)
+        y = _add_product(x, m3, _conv(block.conv3.conv, block.sca(z)))
+        z = _multiply(block.gate(_conv(block.conv4.conv, block.norm2(y))), m4)
+        return _add_product(y, m5, _conv(block.conv5.conv, z))
 
     def tile_masks(self, block: nn.Module, x: torch.Tensor) -> list[Masks]:
         """Per tile, the folded masks ``(lenses, C, h, w)`` in the compute dtype, in the
@@ -125,6 +125,21 @@ class FoldedMasks:
             return from_field(grid, self.name, compute, shapes, pixel_bytes, dtype)
         tiles = grid.tile_masks(compute(grid.enc_row, grid.enc_col), channels_last)
         return [tuple(m.to(dtype) for m in masks) for masks in tiles]
+
+
+def _conv(conv: nn.Conv2d, x: torch.Tensor) -> torch.Tensor:
+    """``conv(x)`` in the layout of ``x``. Features with the columns fastest (the view
+    block's few channels) are convolved channels last, in autocast's dtype when it is on:
+    there oneDNN's depthwise kernels run 4x (fp32) to 6x (bf16) faster, and its 1×1 kernels
+    in bf16 13x, more than the two copies cost."""
+    if is_channels_last(x):
+        return conv(x)
+    dtype = x.dtype
+    if torch.is_autocast_enabled(x.device.type):
+        dtype = torch.get_autocast_dtype(x.device.type)
+    elif conv.kernel_size == (1, 1):  # as fast channels first in float32
+        return conv(x)
+    return conv(x.to(dtype, memory_format=torch.channels_last)).contiguous()
 
 
 def _mask_dtype(device: torch.device, default: torch.dtype) -> torch.dtype:
