@@ -320,6 +320,36 @@ def test_one_step_lowers_the_loss_on_a_fixed_batch(tiny_data, tmp_path):
     assert loss() < before
 
 
+def test_bf16_training_step_runs_the_forward_in_bf16(tiny_data, tmp_path):
+    """``precision="bf16"`` on the CPU: the stages come out in bf16 and the step's loss
+    (computed in float32) is the float32 loss to bf16's rounding: 8 significant bits,
+    2⁻⁸ relative per operation, a few percent through the network."""
+    fp32, bf16 = (_trainer(tiny_data, tmp_path / p, precision=p) for p in ("fp32", "bf16"))
+    bf16.model.load_state_dict(fp32.model.state_dict())
+    batch = fp32.task.collate([fp32.val_set[i] for i in range(2)])
+    with torch.no_grad():
+        assert bf16._forward(bf16.net, batch, bf16.autocast)["recon"][0].dtype == torch.bfloat16
+        assert fp32._forward(fp32.net, batch, fp32.autocast)["recon"][0].dtype == torch.float32
+    assert bf16.train_step(batch)["loss"] == pytest.approx(fp32.train_step(batch)["loss"],
+                                                           rel=0.05)
+    with pytest.raises(ValueError, match="precision: must be one of auto, fp32, bf16"):
+        TrainConfig(precision="fp16").validate()
+
+
+def test_resume_may_change_compile_but_not_precision(tiny_data, tmp_path):
+    _trainer(tiny_data, tmp_path).fit()  # finished: resuming runs no step
+    assert _trainer(tiny_data, tmp_path, compile=True).fit(resume=True)[-1]["epoch"] == 2
+    with pytest.raises(ValueError, match=r"differs in \['precision'\]"):
+        _trainer(tiny_data, tmp_path, precision="bf16").fit(resume=True)
+
+
+def test_compile_without_a_cxx_compiler_is_refused_at_once(tiny_data, tmp_path, monkeypatch):
+    monkeypatch.delenv("CXX", raising=False)
+    monkeypatch.setattr("shutil.which", lambda name: None)
+    with pytest.raises(RuntimeError, match="needs a C.. compiler"):
+        _trainer(tiny_data, tmp_path, compile=True)
+
+
 def test_edge_and_ring_weights_enter_the_training_loss(tiny_data, tmp_path):
     trainer = _trainer(tiny_data, tmp_path, edge_weight=3.0, ring_weight=2.0)
     items = [trainer.val_set[i] for i in range(2)]

@@ -23,7 +23,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Register ``svcode train``."""
     # the torch-free homes of the training defaults and the field's zones: no torch for --help
     from ..evaluation.zones import EDGE_STRIP, RING_RADIUS
-    from ..training.settings import ABLATIONS, TrainConfig
+    from ..training.settings import ABLATIONS, TRAIN_PRECISIONS, TrainConfig
 
     defaults = TrainConfig()
     parser = subparsers.add_parser(
@@ -92,6 +92,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--normalise-exposure", action="store_true",
                         help="bring every frame to the reference level, as reconstruction "
                         "does (default: frames as simulated)")
+    parser.add_argument("--precision", default=defaults.precision, choices=TRAIN_PRECISIONS,
+                        help="the forward pass's precision: bf16 autocast on any device "
+                        "(faster on CPUs with AVX-512 bf16 or AMX units); auto: bf16 on CUDA, "
+                        "fp32 elsewhere (default auto)")
+    parser.add_argument("--compile", action="store_true",
+                        help="compile the training step with torch.compile (needs a C++ "
+                        "compiler on the CPU; minutes at the first step, then faster steps)")
     parser.add_argument("--patches-per-epoch", type=int,
                         help="training patches drawn per epoch (default: all)")
     parser.add_argument("--val-patches", type=int,
@@ -169,6 +176,7 @@ def run(args: argparse.Namespace) -> int:
         patches_per_epoch=args.patches_per_epoch, val_patches=args.val_patches,
         seed=args.seed, workers=args.loader_workers, same_origin=args.same_origin,
         photon_range=tuple(args.photon_range), normalise_exposure=args.normalise_exposure,
+        precision=args.precision, compile=args.compile,
     )
     with in_option_words(_OPTION_OF_FIELD):
         config.validate()

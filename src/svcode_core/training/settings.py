@@ -14,7 +14,10 @@ from typing import Any
 
 from ..config import ConfigError, check_int, check_number
 
-__all__ = ["ABLATIONS", "TrainConfig"]
+__all__ = ["ABLATIONS", "TRAIN_PRECISIONS", "TrainConfig"]
+
+#: training precisions: ``auto`` is bf16 autocast on CUDA and float32 elsewhere
+TRAIN_PRECISIONS = ("auto", "fp32", "bf16")
 
 #: SV-CoDe ablations: name → the :class:`~svcode_core.network.ModelConfig` fields they change
 ABLATIONS = {
@@ -76,6 +79,13 @@ class TrainConfig:
     normalise_exposure : bool
         Bring every frame to the reference level before the network, targets alike, as
         the reconstructors do at inference (:mod:`~svcode_core.methods.exposure`).
+    precision : {"auto", "fp32", "bf16"}
+        The forward pass's precision (:data:`TRAIN_PRECISIONS`): ``bf16`` runs it under
+        bf16 autocast on any device (faster on CPUs with AVX-512 bf16 or AMX units, slower
+        on others); the loss, the weights and validation stay float32.
+    compile : bool
+        Run the training steps through :func:`torch.compile` (needs a C++ compiler on the
+        CPU; the first step compiles for minutes, validation runs uncompiled).
 
     Examples
     --------
@@ -100,6 +110,8 @@ class TrainConfig:
     same_origin: int = 1
     photon_range: tuple[float, float] = (1.0, 1.0)
     normalise_exposure: bool = False
+    precision: str = "auto"
+    compile: bool = False
 
     def validate(self) -> TrainConfig:
         """Raise ``ValueError`` (:class:`~svcode_core.config.ConfigError`) naming the first
@@ -117,6 +129,9 @@ class TrainConfig:
             raise ConfigError(f"min_lr_ratio: must lie in [0, 1], got {self.min_lr_ratio!r}")
         for name in ("alpha", "beta", "edge_weight", "ring_weight"):
             check_number(name, getattr(self, name), 0)
+        if self.precision not in TRAIN_PRECISIONS:
+            raise ConfigError(f"precision: must be one of {', '.join(TRAIN_PRECISIONS)}, "
+                              f"got {self.precision!r}")
         low, high = (check_number("photon_range", v, 0, strict=True) for v in self.photon_range)
         if low > high:
             raise ConfigError(f"photon_range: low must not exceed high, got {self.photon_range!r}")

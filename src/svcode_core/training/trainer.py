@@ -21,7 +21,9 @@ A run folder holds
 Training is reproducible: the model initialisation, each epoch's patch draw and every
 noise draw follow from the seed and the epoch, so ``resume`` after an interruption
 continues exactly as the uninterrupted run would (on the same device and thread count).
-bf16 autocast is used on CUDA only; the loss is always computed in float32.
+The training steps' forward pass runs under bf16 autocast on CUDA, and on any device with
+``precision="bf16"``; the loss is always computed in float32, and validation runs in
+float32, so that runs in either precision are scored alike.
 """
 
 from __future__ import annotations
@@ -31,6 +33,8 @@ import dataclasses
 import io
 import json
 import math
+import os
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -70,6 +74,12 @@ def _with_defaults(config: Any, stored: dict[str, Any]) -> dict[str, Any]:
     defaults = {f.name: f.default for f in dataclasses.fields(config)
                 if f.default is not dataclasses.MISSING}  # no stored config has factories
     return json.loads(json.dumps({**defaults, **stored}))
+
+
+def _cxx_compiler() -> str | None:
+    """The C++ compiler torch.compile would use on the CPU, if there is one."""
+    names = [os.environ["CXX"]] if os.environ.get("CXX") else ["g++", "clang++"]
+    return next((path for path in map(shutil.which, names) if path), None)
 
 
 @dataclass(frozen=True)
@@ -166,7 +176,8 @@ class Trainer:
         self.device = torch.device(device)
         self.dist = dist or DistInfo()
         self.progress = progress and self.dist.is_main
-        self.autocast = self.device.type == "cuda"
+        self.autocast = config.precision == "bf16" or (
+            config.precision == "auto" and self.device.type == "cuda")
 
         self.task = training_task(self.model_config)
         self.stages = self.task.stages
@@ -179,6 +190,12 @@ class Trainer:
         if self.dist.active:
             ids = [self.device.index] if self.device.type == "cuda" else None
             self.net = DistributedDataParallel(self.model, device_ids=ids)
+        if config.compile and self.device.type == "cpu" and not _cxx_compiler():
+            raise RuntimeError("compile: torch.compile needs a C++ compiler on the CPU (g++ "
+                               "or clang++, or one named by CXX); install one or train "
+                               "without compiling")
+        # one shape per step (drop_last), so one graph; validation stays uncompiled
+        self.train_net = torch.compile(self.net, dynamic=False) if config.compile else self.net
 
         self.train_set = self.task.dataset(data, data.train_frames, False, config.seed,
                                            photon_range=tuple(config.photon_range),
@@ -220,8 +237,10 @@ class Trainer:
         return {k: v.to(self.device, non_blocking=True) if k != "origin" else v
                 for k, v in batch.items()}
 
-    def _forward(self, net: torch.nn.Module, batch: dict[str, torch.Tensor]) -> Stages:
-        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.autocast):
+    def _forward(
+        self, net: torch.nn.Module, batch: dict[str, torch.Tensor], autocast: bool = False
+    ) -> Stages:
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=autocast):
             return self.task.outputs(net, batch, self.system)
 
     def _loss_weights(self, batch: dict[str, torch.Tensor]) -> torch.Tensor | None:
@@ -253,7 +272,8 @@ class Trainer:
         """
         batch = self._to_device(batch)
         self.net.train()
-        loss, parts = joint_loss(self._forward(self.net, batch), self.config.alpha,
+        loss, parts = joint_loss(self._forward(self.train_net, batch, self.autocast),
+                                 self.config.alpha,
                                  self.config.beta, self._loss_weights(batch))
         value = float(loss.detach())
         if not math.isfinite(value):
@@ -473,6 +493,7 @@ class Trainer:
         for key, config in (("model_config", self.model_config), ("train_config", self.config)):
             stored = _with_defaults(config, json.loads(state[key]))
             current = json.loads(json.dumps(config.to_dict()))
+            stored.pop("compile", None), current.pop("compile", None)  # speed only
             if stored != current:
                 differing = sorted(k for k in {**stored, **current}
                                    if stored.get(k) != current.get(k))
