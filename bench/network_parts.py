@@ -1,0 +1,183 @@
+"""Where the SV-CoDe network's time goes, per precision, against the processor's peak.
+
+Two workloads on one thread, each in float32 and in bf16 (autocast):
+  * ``frame``: the bundled cm2-mini model reconstructing one sensor frame with the
+    :class:`~svcode_core.Reconstructor`'s defaults (masks kept after the first frame);
+  * ``train``: one training step of the same network (batch 8 × 96², one shared origin,
+    forward, loss, backward, Adam), eager.
+
+The time of each torch operator (self CPU time, :mod:`torch.profiler`) is summed into
+parts: convolutions, matrix products (the coordinate MLPs), layer norms, copies (layout
+and dtype conversions) and the remaining element-wise work (masks, gates, attention,
+checks). Convolutions and matrix products get GFLOP/s from their FLOPs
+(:mod:`torch.utils.flop_counter`) over their own time; the peak is what this processor
+reaches on one thread in a large matrix product (2048², the best of three), per precision.
+
+Results go to bench/results/network_parts.json and network_parts.md.
+Run: ``python bench/network_parts.py`` (the machine quiet: the times are absolute).
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.profiler import ProfilerActivity, profile
+from torch.utils.flop_counter import FlopCounterMode
+
+from svcode_core import SystemConfig
+from svcode_core.methods.build import build_reconstructor
+from svcode_core.methods.model_file import load_model
+from svcode_core.pretrained import bundled_weights
+from svcode_core.run.allocator import reuse_freed_memory
+
+RESULTS = Path(__file__).parent / "results"
+PARTS = ("convolution", "matrix product", "layer norm", "copy", "element-wise")
+DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16}
+
+
+def part_of(op: str) -> str:
+    """The part an aten operator's time is counted in."""
+    if "conv" in op:
+        return "convolution"
+    if any(k in op for k in ("::mm", "::bmm", "::addmm", "::matmul", "::baddbmm")):
+        return "matrix product"
+    if "layer_norm" in op:
+        return "layer norm"
+    if op in ("aten::copy_", "aten::_to_copy", "aten::clone", "aten::contiguous"):
+        return "copy"
+    return "element-wise"
+
+
+def flop_part(op: str) -> str | None:
+    """The part of an operator the FLOP counter names (convolutions and products)."""
+    name = str(op)
+    if "conv" in name:
+        return "convolution"
+    if any(k in name for k in ("mm", "matmul")):
+        return "matrix product"
+    return None
+
+
+def gemm_peak(dtype: torch.dtype, n: int = 2048) -> float:
+    """GFLOP/s of an ``n × n`` matrix product on one thread, the best of three."""
+    a, b = torch.rand(n, n).to(dtype), torch.rand(n, n).to(dtype)
+    torch.mm(a, b)
+    best = min(_timed(lambda: torch.mm(a, b)) for _ in range(3))
+    return 2 * n**3 / best / 1e9
+
+
+def _timed(call) -> float:
+    start = time.perf_counter()
+    call()
+    return time.perf_counter() - start
+
+
+def profile_parts(run) -> dict:
+    """Wall time of ``run`` (the median of three after a warm-up), its time per part and
+    its convolution and product FLOPs."""
+    run()
+    wall = sorted(_timed(run) for _ in range(3))[1]
+    with FlopCounterMode(display=False) as counter:
+        run()
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        run()
+    seconds = dict.fromkeys(PARTS, 0.0)
+    for event in prof.key_averages():
+        if event.key.startswith("aten::"):
+            seconds[part_of(event.key)] += event.self_cpu_time_total / 1e6
+    flops = dict.fromkeys(PARTS, 0.0)
+    for op, count in counter.get_flop_counts()["Global"].items():
+        part = flop_part(op)
+        if part:
+            flops[part] += count
+    return {"wall_s": wall, "seconds": seconds, "gflop": {k: v / 1e9 for k, v in flops.items()}}
+
+
+def frame_workload(precision: str):
+    """One frame through the bundled model with the reconstructor's defaults."""
+    system = SystemConfig.preset("cm2-mini")
+    rec = build_reconstructor("svcode", system, precision=precision)
+    frame = np.random.default_rng(0).random(system.sensor_shape, dtype=np.float32)
+    rec(frame)  # the masks of the tile grid, computed once per recording
+    return lambda: rec(frame)
+
+
+def train_workload(precision: str, compiled: bool = False):
+    """One training step of the bundled network, its forward under bf16 autocast for
+    ``bf16`` and compiled as ``svcode train --compile`` does when ``compiled``."""
+    model, system = load_model(bundled_weights("cm2-mini"))
+    model.train()
+    net = torch.compile(model, dynamic=False) if compiled else model
+    optimizer = torch.optim.Adam(model.parameters(), 1e-4)
+    channels = model.demix.intro.in_channels
+    views = torch.rand(8, channels, 96, 96)
+    origins = torch.tensor([[48, 96]] * 8)
+
+    def step():
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=precision == "bf16"):
+            demixed, recon = net(views, origins, system.sub_view_size)
+        loss = demixed.float().square().mean() + recon.float().square().mean()
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+
+    return step
+
+
+def main() -> None:
+    torch.set_num_threads(1)
+    reuse_freed_memory()  # as the svcode command does
+    peak = {name: gemm_peak(dtype) for name, dtype in DTYPES.items()}
+    rows = []
+    for workload, make in (("frame", frame_workload), ("train", train_workload)):
+        for precision in DTYPES:
+            row = {"workload": workload, "precision": precision,
+                   **profile_parts(make(precision))}
+            rows.append(row)
+            print(workload, precision, f"{row['wall_s']:.3f} s", flush=True)
+    report = {"processor": platform.processor() or platform.machine(),
+              "capability": torch.backends.cpu.get_cpu_capability(),
+              "gemm_peak_gflops": peak, "rows": rows}
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / "network_parts.json").write_text(json.dumps(report, indent=2) + "\n")
+    (RESULTS / "network_parts.md").write_text(markdown(report))
+    print((RESULTS / "network_parts.md").read_text())
+
+
+def markdown(report: dict) -> str:
+    peak = report["gemm_peak_gflops"]
+    lines = [
+        "# Where the network's time goes",
+        "",
+        "Generated by `bench/network_parts.py`: one thread, the bundled cm2-mini model; "
+        "`frame` is one sensor frame through the reconstructor's defaults (masks kept), "
+        "`train` one eager training step (8 × 96², forward, backward, Adam). Seconds are "
+        "each part's own operator time in one profiled run (the wall time is the median of "
+        "three unprofiled runs); GFLOP/s of a part is its FLOPs over its time, and *of "
+        "peak* compares it with a 2048² matrix product on the same thread "
+        f"(fp32 {peak['fp32']:.0f}, bf16 {peak['bf16']:.0f} GFLOP/s; CPU capability "
+        f"{report['capability']}).",
+        "",
+        "| workload | precision | wall s | " + " | ".join(f"{p} s" for p in PARTS)
+        + " | conv GFLOP/s | conv of peak | MLP GFLOP/s |",
+        "|---|---|---|" + "---|" * len(PARTS) + "---|---|---|",
+    ]
+    for r in report["rows"]:
+        sec, gf = r["seconds"], r["gflop"]
+        conv = gf["convolution"] / max(sec["convolution"], 1e-9)
+        mlp = gf["matrix product"] / max(sec["matrix product"], 1e-9)
+        lines.append(
+            f"| {r['workload']} | {r['precision']} | {r['wall_s']:.3f} | "
+            + " | ".join(f"{sec[p]:.3f}" for p in PARTS)
+            + f" | {conv:.0f} | {conv / peak[r['precision']]:.0%} | {mlp:.0f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    main()
