@@ -32,6 +32,7 @@ from torch.utils.flop_counter import FlopCounterMode
 from svcode_core import SystemConfig
 from svcode_core.methods.build import build_reconstructor
 from svcode_core.methods.model_file import load_model
+from svcode_core.network.compiled import compile_model
 from svcode_core.pretrained import bundled_weights
 from svcode_core.run.allocator import reuse_freed_memory
 
@@ -112,7 +113,7 @@ def train_workload(precision: str, compiled: bool = False):
     ``bf16`` and compiled as ``svcode train --compile`` does when ``compiled``."""
     model, system = load_model(bundled_weights("cm2-mini"))
     model.train()
-    net = torch.compile(model, dynamic=False) if compiled else model
+    net = compile_model(model) if compiled else model
     optimizer = torch.optim.Adam(model.parameters(), 1e-4)
     channels = model.demix.intro.in_channels
     views = torch.rand(8, channels, 96, 96)

@@ -25,7 +25,7 @@ LAYERS = (
 )
 LAYER = {part: rank for rank, parts in enumerate(LAYERS) for part in parts}
 #: the optional or drawing-only dependencies: never imported with the core or the plugin
-HEAVY = ("matplotlib", "distributed", "pytorch_msssim")
+HEAVY = ("matplotlib", "distributed", "pytorch_msssim", "torch._dynamo")
 
 
 def _imports(path: Path, package: str) -> set[str]:
@@ -91,8 +91,10 @@ def test_the_plugin_imports_no_command_and_no_benchmark():
 def test_the_core_and_the_plugin_load_no_optional_dependency():
     """Importing the core, its methods and streaming, and every module of the plugin loads
     neither matplotlib (figures import it when they draw), distributed (the ``dask``
-    extra) nor pytorch-msssim (training)."""
+    extra), pytorch-msssim (training) nor torch's compiler (``torch._dynamo``: 2 s, loaded
+    only by ``--compile``)."""
     modules = ["svcode_core", "svcode_core.methods", "svcode_core.methods.svcode",
+               "svcode_core.network", "svcode_core.methods.model_file",
                "svcode_core.run.stream", "svcode_core.physics.calibration",
                "svcode_core.evaluation.metrics", "svcode_core.evaluation.figures"]  # fmt: skip
     if importlib.util.find_spec("napari") is not None:

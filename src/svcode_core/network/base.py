@@ -99,7 +99,6 @@ class TiledModel(nn.Module):
         padded = F.pad(views, (0, -w % self.stride, 0, -h % self.stride))
         return padded, self.masks_for(origins.long(), sub_view_size, tuple(padded.shape[-2:]))
 
-    @torch.compiler.disable  # origin-dependent shapes: compiled, every origin would recompile
     def masks_for(
         self, origins: torch.Tensor, sub_view_size: int, shape: tuple[int, int]
     ) -> FastMasks | PlainMasks | None:

@@ -109,7 +109,6 @@ class FoldedMasks:
         z = _multiply(block.gate(_conv(block.conv4.conv, block.norm2(y))), m4)
         return _add_product(y, m5, _conv(block.conv5.conv, z))
 
-    @torch.compiler.disable  # lattice sizes vary with the origin: computed eagerly
     def tile_masks(self, block: nn.Module, x: torch.Tensor) -> list[Masks]:
         """Per tile, the folded masks ``(lenses, C, h, w)`` in the compute dtype, in the
         layout of ``x``: from the cache, or computed (at the pixels, or at the lattice nodes

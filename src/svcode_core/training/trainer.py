@@ -51,6 +51,7 @@ from ..io import atomic_path, write_text_atomic
 from ..methods.learned import FourierNetConfig, MultiWienerConfig
 from ..methods.model_file import load_model, save_model
 from ..network import ModelConfig, SVCoDe, with_lens_context
+from ..network.compiled import compile_model
 from .dataset import TrainingData
 from .distributed import DistInfo, all_reduce_sum, barrier
 from .loss import field_weights, joint_loss, psnr_per_sample, ssim_per_sample
@@ -195,7 +196,7 @@ class Trainer:
                                "or clang++, or one named by CXX); install one or train "
                                "without compiling")
         # one shape per step (drop_last), so one graph; validation stays uncompiled
-        self.train_net = torch.compile(self.net, dynamic=False) if config.compile else self.net
+        self.train_net = compile_model(self.net) if config.compile else self.net
 
         self.train_set = self.task.dataset(data, data.train_frames, False, config.seed,
                                            photon_range=tuple(config.photon_range),
