@@ -91,8 +91,11 @@ PEAK_SCRIPT = textwrap.dedent("""
     # machine-dependent); then the peak is reset (clear_refs 5) and measured afresh
     tiny = SystemConfig.tiny()
     Reconstructor(model, tiny, skip_empty=False)(np.ones(tiny.sensor_shape, np.float32))
-    with open("/proc/self/clear_refs", "w") as f:
-        f.write("5")
+    try:  # without it the peak still counts: the frame's is above the warm-up's
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+    except OSError:
+        pass
     system = SystemConfig.preset("cm2-mini")
     rec = Reconstructor(model, system, tile_memory_bytes=int(sys.argv[1]), skip_empty=False)
     frame = np.random.default_rng(0).random(system.sensor_shape, dtype=np.float32)
