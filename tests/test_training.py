@@ -336,16 +336,19 @@ def test_bf16_training_step_runs_the_forward_in_bf16(tiny_data, tmp_path):
         TrainConfig(precision="fp16").validate()
 
 
-def test_resume_may_change_compile_but_not_precision(tiny_data, tmp_path):
-    _trainer(tiny_data, tmp_path).fit()  # finished: resuming runs no step
+def test_resume_may_change_compile_but_not_precision(tiny_data, tmp_path, monkeypatch):
+    # nothing is compiled (resuming a finished run runs no step): no compiler needed
+    monkeypatch.setattr("svcode_core.training.trainer._cxx_compiler", lambda: "c++")
+    _trainer(tiny_data, tmp_path).fit()
     assert _trainer(tiny_data, tmp_path, compile=True).fit(resume=True)[-1]["epoch"] == 2
     with pytest.raises(ValueError, match=r"differs in \['precision'\]"):
         _trainer(tiny_data, tmp_path, precision="bf16").fit(resume=True)
 
 
 def test_compile_without_a_cxx_compiler_is_refused_at_once(tiny_data, tmp_path, monkeypatch):
-    monkeypatch.delenv("CXX", raising=False)
-    monkeypatch.setattr("shutil.which", lambda name: None)
+    from torch._inductor import config
+
+    monkeypatch.setattr(config.cpp, "cxx", ("no-such-c++-compiler",))
     with pytest.raises(RuntimeError, match="needs a C.. compiler"):
         _trainer(tiny_data, tmp_path, compile=True)
 

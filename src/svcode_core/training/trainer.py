@@ -33,8 +33,6 @@ import dataclasses
 import io
 import json
 import math
-import os
-import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -78,9 +76,14 @@ def _with_defaults(config: Any, stored: dict[str, Any]) -> dict[str, Any]:
 
 
 def _cxx_compiler() -> str | None:
-    """The C++ compiler torch.compile would use on the CPU, if there is one."""
-    names = [os.environ["CXX"]] if os.environ.get("CXX") else ["g++", "clang++"]
-    return next((path for path in map(shutil.which, names) if path), None)
+    """The C++ compiler torch.compile will use on the CPU (torch's own search: ``CXX``,
+    else ``g++``), or ``None``."""
+    from torch._inductor import cpp_builder, exc
+
+    try:
+        return cpp_builder.get_cpp_compiler()
+    except exc.InvalidCxxCompiler:
+        return None
 
 
 @dataclass(frozen=True)
@@ -192,9 +195,9 @@ class Trainer:
             ids = [self.device.index] if self.device.type == "cuda" else None
             self.net = DistributedDataParallel(self.model, device_ids=ids)
         if config.compile and self.device.type == "cpu" and not _cxx_compiler():
-            raise RuntimeError("compile: torch.compile needs a C++ compiler on the CPU (g++ "
-                               "or clang++, or one named by CXX); install one or train "
-                               "without compiling")
+            raise RuntimeError("compile: torch.compile needs a C++ compiler on the CPU (g++, "
+                               "or the one named by CXX); install one or train without "
+                               "compiling")
         # one shape per step (drop_last), so one graph; validation stays uncompiled
         self.train_net = compile_model(self.net) if config.compile else self.net
 
