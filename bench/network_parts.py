@@ -54,14 +54,11 @@ def part_of(op: str) -> str:
     return "element-wise"
 
 
-def flop_part(op: str) -> str | None:
-    """The part of an operator the FLOP counter names (convolutions and products)."""
-    name = str(op)
-    if "conv" in name:
-        return "convolution"
-    if any(k in name for k in ("mm", "matmul")):
-        return "matrix product"
-    return None
+def flop_part(op) -> str | None:
+    """The part of an operator the FLOP counter names (``aten.convolution``...): only
+    convolutions and products have FLOPs counted."""
+    part = part_of(str(op).replace(".", "::", 1))
+    return part if part in ("convolution", "matrix product") else None
 
 
 def gemm_peak(dtype: torch.dtype, n: int = 2048) -> float:

@@ -426,6 +426,15 @@ def test_fast_block_equals_plain_block(config, origins, path, monkeypatch):
                 assert _ulps(fast, plain.to(F64)) <= ROUTES_BLOCK_ULPS, name
 
 
+def _fast_and_plain(model, views, origins, size, path, monkeypatch):
+    """The model's outputs on fast ``path`` paired with those on the plain route."""
+    with _on_path(model, "plain", monkeypatch):
+        plain = model(views, origins, size)
+    with _on_path(model, path, monkeypatch):
+        fast = model(views, origins, size)
+    return zip(fast, plain, strict=True)
+
+
 @pytest.mark.parametrize("path", FAST_PATHS)
 @pytest.mark.parametrize("origins", ORIGINS.values(), ids=ORIGINS.keys())
 @pytest.mark.parametrize("config", [SMALL, LATTICE], ids=["exact", "lattice"])
@@ -435,11 +444,7 @@ def test_fast_model_equals_plain_model_random_weights(config, origins, path, mon
     model = visible_model(config)
     torch.manual_seed(3)
     views = torch.rand(len(origins), LENSES * config.views_per_lens, 13, 22)
-    with _on_path(model, "plain", monkeypatch):
-        plain = model(views, origins, S)
-    with _on_path(model, path, monkeypatch):
-        fast = model(views, origins, S)
-    for f, p in zip(fast, plain, strict=True):
+    for f, p in _fast_and_plain(model, views, origins, S, path, monkeypatch):
         assert _ulps(f, p.to(F64)) <= math.sqrt(_blocks(model)) * ROUTES_BLOCK_ULPS
 
 
@@ -452,10 +457,6 @@ def test_fast_model_equals_plain_model_trained_weights(trained, origins, path, m
     config, size = model.model_config, system.sub_view_size
     torch.manual_seed(4)
     views = torch.rand(len(origins), LENSES * config.views_per_lens, 44, 60)
-    with _on_path(model, "plain", monkeypatch):
-        plain = model(views, origins, size)
-    with _on_path(model, path, monkeypatch):
-        fast = model(views, origins, size)
-    for f, p in zip(fast, plain, strict=True):
+    for f, p in _fast_and_plain(model, views, origins, size, path, monkeypatch):
         assert (p > 0).any()
         assert _ulps(f, p.to(F64)) <= math.sqrt(_blocks(model)) * ROUTES_BLOCK_ULPS
