@@ -118,9 +118,11 @@ def test_sub_pixel_positions_recover_the_drift(stage_scan):
     assert error < 0.2 < 0.35 < np.abs(rounded.offsets - truth).max()
     np.testing.assert_allclose(calibration.array_shift, DEPARTURES.mla_shift_px, atol=0.1)
     assert np.abs(rounded.array_shift - DEPARTURES.mla_shift_px).max() > 0.25
-    # the fitted chief rays predict the spots better (those of the rounded positions are
-    # not where the frames have them)
-    assert calibration.residual_rms.mean() < 0.85 * rounded.residual_rms.mean()
+    # the fitted chief rays predict the spots better: the rounded positions leave most of
+    # the stage's jitter (uniform ±0.1 px per axis, 0.082 px rms) unexplained, in quadrature
+    jitter_rms = 0.2 / np.sqrt(12) * np.sqrt(2)
+    excess = rounded.residual_rms.mean() ** 2 - calibration.residual_rms.mean() ** 2
+    assert excess > (0.8 * jitter_rms) ** 2
     # the PSFs, moved back to whole pixels, make a forward model of a scene it never saw
     # (the tiny system's 1-px Airy core is too coarsely sampled to move exactly: 7 %)
     from svcode_core.phantoms import make_object
@@ -406,3 +408,51 @@ def test_report_gives_the_psf_fwhm_in_pixels_and_micrometres(scan, tmp_path):
     unknown = calibration.system.replace(object_pixel_um=None)
     text = report_text(dataclasses.replace(calibration, system=unknown), system)
     assert "pixel size unknown" in text and f"{centre:6.2f}" in text
+
+
+def test_offsets_are_fitted_beside_a_centroid_shift_the_lenses_share(tiny_system):
+    """Noise-free centroid moves: the lens offsets plus a departure ``b_1 f + b_3 |f|² f``
+    shared by the lenses, where each outer lens sees only the half of its field towards
+    the lattice centre (as on a sensor). The joint fit recovers both to float64 rounding;
+    the mean move of each lens, what the offsets were before, is biased (the corner lenses
+    by 0.07 px here)."""
+    from svcode_core.physics.calibration import FIELD_POWERS, _field_vectors, _fit_offsets
+
+    positions = scan_grid(tiny_system, 9).astype(float)
+    field = _field_vectors(positions, tiny_system)  # (N, 9, 2)
+    offsets = np.random.default_rng(0).uniform(-0.5, 0.5, (9, 2))
+    b = np.array([0.3, -0.2])[: len(FIELD_POWERS)]
+    h = np.linalg.norm(field, axis=-1, keepdims=True)
+    shift = offsets + sum(c * field * h ** (p - 1) for c, p in zip(b, FIELD_POWERS))
+    axes = np.asarray(tiny_system.lens_axes)
+    use = np.einsum("nlc,lc->nl", field, axes) <= 0  # towards the centre; all for lens 4
+    fitted, errors, field_shift = _fit_offsets(shift, use, field)
+    np.testing.assert_allclose(fitted, offsets, atol=1e-12)
+    np.testing.assert_allclose(field_shift, b, atol=1e-12)
+    assert errors.max() < 1e-12
+    mean = np.stack([shift[use[:, lens], lens].mean(axis=0) for lens in range(9)])
+    assert np.linalg.norm(mean - offsets, axis=1)[[0, 2, 6, 8]].min() > 0.05
+
+
+def test_aberration_errors_do_not_bias_the_chief_rays(tiny_system, monkeypatch):
+    """A departed tiny instrument whose distortion and coma are off by half their nominal
+    values, its truth rendered close to its full PSFs: every chief ray within 0.1 px (the
+    centre lens, which no field shift biases, is about 0.04 px off from the scan's noise
+    and sampling); fitted as a mean per lens, the outer lenses were 0.15-0.3 px off."""
+    import svcode_core.physics.calibration as calibration_module
+
+    optics = tiny_system.optics
+    departures = Departures(name="aberrations", mla_shift_px=(1.3, -0.7), mla_rotation_deg=0.4,
+                            distortion_error_px=0.5 * optics.distortion,
+                            coma_error_waves=0.5 * optics.coma, truth_rank_tolerance=1e-4)
+    system = with_dark_offset(tiny_system, BLACK_LEVEL)
+    positions = scan_grid(system, 7)
+    frames, dark = simulate_scan(Simulator(system, departures=departures), positions, seed=1)
+    truth = departures.lens_offsets(system)
+    calibration = calibrate(frames, positions, system, dark=dark, tolerance=TOLERANCE)
+    error = np.linalg.norm(calibration.offsets - truth, axis=1)
+    assert error.max() < 0.1, error
+    assert calibration.field_shift.sum() > 0.1  # the distortion error is positive
+    monkeypatch.setattr(calibration_module, "FIELD_POWERS", ())
+    mean = calibrate(frames, positions, system, dark=dark, tolerance=TOLERANCE)
+    assert np.linalg.norm(mean.offsets - truth, axis=1).max() > 0.15

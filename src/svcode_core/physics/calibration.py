@@ -14,12 +14,18 @@ source a fraction ``f_n = p_n - q_n`` off its nearest pixel ``q_n`` is first mov
    (:func:`skimage.feature.peak_local_max`) above a threshold derived from the noise
    (median absolute deviation of the frames) are assigned to the lens whose nominal
    image point lies within half a lens pitch.
-2. **Chief rays**: each spot fully on the sensor gives the lens's offset from its nominal
-   chief ray as its centroid minus the centroid of the nominal model's PSF at ``p_n``
-   (which carries the distortion and coma shift); the offset of a lens is the least-squares
-   (mean) value over its spots, then split, again by least squares, into an array
-   translation, an array rotation about the lattice centre and per-lens residuals. The
-   nominal PSF at ``p_n`` is the one the operator uses: the grid PSFs interpolated.
+2. **Chief rays**: each spot fully on the sensor gives its centroid minus the centroid of
+   the nominal model's PSF at ``p_n`` (which carries the nominal distortion and coma
+   shift; the nominal PSF at ``p_n`` is the one the operator uses, the grid PSFs
+   interpolated). That difference is the lens's offset ``o_ℓ`` plus the instrument's
+   departure from the nominal centroid shift, which all lenses share as a function of the
+   field vector ``f`` from their axis: ``Σ_j b_j |f|^(j-1) f``, ``j`` in
+   :data:`FIELD_POWERS` (coma moves a centroid about ``∝ h``, distortion ``∝ h³``). The
+   offsets and ``b_j`` are fitted together by least squares: an outer lens sees only part
+   of its field, so its mean difference alone would carry the departure at its spots as a
+   bias, while the centre lens, which sees its field around its axis, pins ``b_j``. The
+   offsets are then split, again by least squares, into an array translation, an array
+   rotation about the lattice centre and per-lens residuals.
 3. **PSFs**: the ``k × k`` window at ``round(c_ℓ) - S//2 + q_n`` of every moved frame is
    the registered PSF of lens ``ℓ`` at ``p_n`` (the sub-pixel part of the chief ray stays
    in it, as in :mod:`svcode_core.physics.instrument`). The PSFs on the ``G × G`` grid are
@@ -50,7 +56,7 @@ from skimage.feature import peak_local_max
 
 from ..config import N_LENSES, SystemConfig
 from .lowrank import decompose_psfs
-from .optics import psf_grid_positions, system_psfs
+from .optics import field_vectors, psf_grid_positions, system_psfs
 
 __all__ = [
     "Calibration",
@@ -71,6 +77,10 @@ PRIOR_WEIGHT = 1e-2
 #: Rows and columns at each sensor edge left out of the PSF fit in a frame moved by a
 #: sub-pixel shift: the interpolation there reaches past the sensor.
 SHIFT_MARGIN = 2
+
+#: Powers of the normalised field ``h`` in the centroid shift fitted beside the chief rays
+#: (step 2 above): coma's shift is about linear in ``h``, distortion's cubic.
+FIELD_POWERS = (1, 3)
 
 #: ``progress(stage, fraction)``: what :func:`calibrate` is doing and the fraction done.
 Progress = Callable[[str, float], None]
@@ -265,6 +275,10 @@ class Calibration:
         Least-squares rotation of the lens array about the lattice centre, degrees.
     lens_residuals : numpy.ndarray
         ``(9, 2)`` offsets left after the translation and rotation (per-lens errors).
+    field_shift : numpy.ndarray
+        ``(len(FIELD_POWERS),)`` coefficients ``b_j`` (pixels) of the centroid shift's
+        departure from the nominal optics along the field direction, ``Σ_j b_j h^j``; their
+        sum is the departure at the edge of a lens's field (``h = 1``).
     centroids : numpy.ndarray
         ``(N, 9, 2)`` measured spot centroids in sensor pixels of every frame (of the mean
         frame of its position), NaN where not measured.
@@ -288,6 +302,7 @@ class Calibration:
     array_shift: np.ndarray
     array_rotation_deg: float
     lens_residuals: np.ndarray
+    field_shift: np.ndarray
     centroids: np.ndarray
     predicted: np.ndarray
     throughput: np.ndarray
@@ -380,6 +395,50 @@ def _find_spots(frames: np.ndarray, expected: np.ndarray, system: SystemConfig,
             raise CalibrationError(f"{labels[n]}: spots found, but none within {radius:.0f} px of "
                                    "a lens's nominal image point: wrong positions or system?")
     return peaks
+
+
+def _field_vectors(positions: np.ndarray, system: SystemConfig) -> np.ndarray:
+    """``(N, 9, 2)`` normalised field vectors of every lens at object positions ``(N, 2)``."""
+    points = 2.0 * np.asarray(positions, np.float64) / (system.sub_view_size - 1) - 1.0
+    return np.stack([field_vectors(system, lens, points) for lens in range(N_LENSES)], axis=1)
+
+
+def _fit_offsets(shift: np.ndarray, use: np.ndarray, field: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """Lens offsets and the shared centroid-shift departure by least squares (step 2).
+
+    ``shift`` ``(N, 9, 2)``: measured minus nominal centroid; ``use`` ``(N, 9)``: the spots
+    that count; ``field`` ``(N, 9, 2)``: normalised field vectors. Returns the offsets and
+    their standard errors ``(9, 2)`` and ``b_j`` (:data:`FIELD_POWERS`); ``b_j`` are zero
+    where the spots do not determine them (a scan that does not spread over the field).
+    """
+    spot, lens = np.nonzero(use)
+    count = len(spot)
+    f = field[spot, lens]
+    h = np.hypot(f[:, 0], f[:, 1])
+    design = np.zeros((count, 2, 2 * N_LENSES + len(FIELD_POWERS)))
+    design[np.arange(count), 0, 2 * lens] = 1.0
+    design[np.arange(count), 1, 2 * lens + 1] = 1.0
+    for j, power in enumerate(FIELD_POWERS):
+        design[:, :, 2 * N_LENSES + j] = f * h[:, None] ** (power - 1)
+    design = design.reshape(2 * count, -1)
+    if np.linalg.matrix_rank(design) < design.shape[1]:
+        design = design[:, : 2 * N_LENSES]
+    values = shift[spot, lens].ravel()
+    solution, *_ = np.linalg.lstsq(design, values, rcond=None)
+    residual = values - design @ solution
+    variance = float(residual @ residual) / max(len(values) - design.shape[1], 1)
+    covariance = variance * np.linalg.inv(design.T @ design)
+    errors = np.sqrt(np.diag(covariance)[: 2 * N_LENSES]).reshape(N_LENSES, 2)
+    field_shift = np.zeros(len(FIELD_POWERS))
+    field_shift[: design.shape[1] - 2 * N_LENSES] = solution[2 * N_LENSES:]
+    return solution[: 2 * N_LENSES].reshape(N_LENSES, 2), errors, field_shift
+
+
+def _shared_shift(field: np.ndarray, field_shift: np.ndarray) -> np.ndarray:
+    """``(..., 2)`` centroid-shift departure ``Σ_j b_j |f|^(j-1) f`` at field vectors ``field``."""
+    h = np.hypot(field[..., 0], field[..., 1])[..., None]
+    return sum(b * field * h ** (power - 1) for b, power in zip(field_shift, FIELD_POWERS))
 
 
 def fit_array(offsets: np.ndarray, system: SystemConfig) -> tuple[np.ndarray, float, np.ndarray]:
@@ -596,21 +655,19 @@ def calibrate(
     design = _grid_design(positions, system)
     nominal = np.einsum("ng,lgij->nlij", design, system_psfs(system))
     shift = _centroid(windows) - _centroid(nominal)  # (N, 9, 2) sub-pixel moves
-    offsets = np.zeros((N_LENSES, 2))
-    errors = np.zeros((N_LENSES, 2))
     for lens in range(N_LENSES):
-        use = complete[:, lens]
-        if use.sum() < 2:
-            raise CalibrationError(f"lens {lens}: {int(use.sum())} spot(s) wholly on the sensor, "
-                                   "at least 2 are needed to fit its chief ray")  # fmt: skip
-        values = shift[use, lens]
-        offsets[lens] = whole[lens] + values.mean(axis=0)
-        errors[lens] = values.std(axis=0, ddof=1) / math.sqrt(len(values))
+        if complete[:, lens].sum() < 2:
+            raise CalibrationError(f"lens {lens}: {int(complete[:, lens].sum())} spot(s) wholly "
+                                   "on the sensor, at least 2 are needed to fit its chief ray")
+    field = _field_vectors(positions, system)
+    offsets, errors, field_shift = _fit_offsets(shift, complete, field)
+    offsets += whole
     array_shift, rotation, residuals = fit_array(offsets, system)
     fitted = nominal_rays + offsets
     rays = np.rint(fitted).astype(np.int64)
     # in the recorded frames, where the source was
-    predicted = _image_points(system, fitted, positions) + _centroid(nominal)
+    predicted = (_image_points(system, fitted, positions) + _centroid(nominal)
+                 + _shared_shift(field, field_shift))
     centroids = centres + _centroid(windows) + fraction[:, None]
     system = system.replace(chief_rays=tuple((int(r), int(c)) for r, c in rays))
 
@@ -649,6 +706,7 @@ def calibrate(
     return Calibration(
         system=system, psfs=psfs, chief_rays=fitted, offsets=offsets, offset_errors=errors,
         array_shift=array_shift, array_rotation_deg=rotation, lens_residuals=residuals,
+        field_shift=field_shift,
         centroids=np.where(spots, centroids[which], np.nan),
         predicted=np.where(spots, predicted[which], np.nan),
         throughput=throughput, ranks=ranks, brightness=brightness, noise_sigma=sigma,
@@ -752,6 +810,9 @@ def report_text(calibration: Calibration, nominal: SystemConfig) -> str:
         f"{cal.noise_sigma:.3g}, source brightness {cal.brightness:.4g}",
         f"lens array: shift ({cal.array_shift[0]:+.3f}, {cal.array_shift[1]:+.3f}) px, "
         f"rotation {cal.array_rotation_deg:+.4f} deg",
+        "spot centroids off the nominal optics' along the field by "
+        + " ".join(f"{b:+.3f} h^{power}" for b, power in zip(cal.field_shift, FIELD_POWERS))
+        + f" px ({cal.field_shift.sum():+.3f} px at the edge of a lens's field, h = 1)",
         "lens  nominal ray   fitted ray            offset (+- s.e.) px            "
         "per-lens residual px  spots  centroid rms px  K  peak throughput",
     ]
@@ -778,7 +839,7 @@ def save_calibration(calibration: Calibration, out_dir: str | Path,
 
     Files: ``system.json`` (``psf_model`` = ``psfs.tif``, relative), ``psfs.tif`` and
     ``psfs.positions.json`` (:func:`svcode_core.physics.psf_io.save_psfs`), ``calibration.json``
-    (fitted chief rays, offsets, array motion, throughput, ranks, the PSF FWHM ``(9, G·G)``
+    (fitted chief rays, offsets, array motion, the centroid shift off the nominal optics, throughput, ranks, the PSF FWHM ``(9, G·G)``
     in pixels and micrometres) and ``report.txt``. The report's figure, ``report.png``, is
     drawn above the physics (:func:`svcode_core.evaluation.figures.calibration_figure`, by
     ``svcode calibrate`` and the Calibration widget).
@@ -807,6 +868,7 @@ def save_calibration(calibration: Calibration, out_dir: str | Path,
         "array_shift_px": cal.array_shift.tolist(),
         "array_rotation_deg": cal.array_rotation_deg,
         "lens_residuals_px": cal.lens_residuals.tolist(),
+        "field_shift_px": dict(zip((f"h^{p}" for p in FIELD_POWERS), cal.field_shift.tolist())),
         "centroid_rms_px": cal.residual_rms.tolist(),
         "throughput": cal.throughput.tolist(),
         "ranks": list(cal.ranks),

@@ -41,6 +41,7 @@ import numpy as np
 from ..config import N_LENSES, OpticsConfig, SystemConfig
 
 __all__ = [
+    "field_vectors",
     "lens_psf",
     "lens_psfs",
     "psf_grid_positions",
@@ -102,14 +103,27 @@ def psf_grid_positions(config: SystemConfig) -> np.ndarray:
     return np.stack([v.ravel(), u.ravel()], axis=1)
 
 
+def field_vectors(config: SystemConfig, lens: int, points: np.ndarray) -> np.ndarray:
+    """Normalised field vectors ``h φ̂ = (r - a_ℓ) / field_radius`` ``(N, 2)`` of lens ``lens``
+    at object points ``(v, u)`` ``(N, 2)``.
+
+    Examples
+    --------
+    >>> config = SystemConfig.preset("cm2-mini")
+    >>> axis = np.asarray([config.lens_axes[4]])
+    >>> field_vectors(config, 4, axis)
+    array([[0., 0.]])
+    """
+    offset = np.asarray(points, dtype=np.float64) - np.asarray(config.lens_axes[lens], np.float64)
+    return offset / config.optics.field_radius
+
+
 def _field(config: SystemConfig, lens: int, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Normalised field ``h`` (N,) and unit field direction ``φ̂`` (N, 2); ``φ̂ = 0`` on axis."""
-    offset = points - np.asarray(config.lens_axes[lens], dtype=np.float64)
-    distance = np.hypot(offset[:, 0], offset[:, 1])
-    direction = np.divide(
-        offset, distance[:, None], out=np.zeros_like(offset), where=distance[:, None] > 0
-    )
-    return distance / config.optics.field_radius, direction
+    vectors = field_vectors(config, lens, points)
+    h = np.hypot(vectors[:, 0], vectors[:, 1])
+    direction = np.divide(vectors, h[:, None], out=np.zeros_like(vectors), where=h[:, None] > 0)
+    return h, direction
 
 
 def _transmission(optics: OpticsConfig, h: np.ndarray) -> np.ndarray:
