@@ -520,3 +520,20 @@ def test_benchmark_labels_and_scores_an_ablation_model(tiny_system, tiny_op, tin
     assert np.isfinite(refined["psnr"]) and refined["psnr"] != plain["psnr"]
     with pytest.raises(ValueError, match="unknown method families"):
         run_benchmark(tiny_system, methods=("fouriernet",))
+
+
+def test_the_operator_norm_is_estimated_once_per_operator(tiny_system, monkeypatch):
+    """A solver is built for every widget run on the operator the core keeps: the norm's
+    power iteration (1.4 s on cm2-mini) runs once per operator and iteration count."""
+    import svcode_core.methods.baselines.admm as admm
+
+    calls = []
+    estimate = admm._power_iteration
+    monkeypatch.setattr(admm, "_power_iteration",
+                        lambda op, n: calls.append(n) or estimate(op, n))
+    operator = CM2Operator.from_system(tiny_system)
+    first = operator_norm(operator)
+    assert operator_norm(operator) == first and calls == [10]
+    operator_norm(operator, 3)
+    operator_norm(CM2Operator.from_system(tiny_system))
+    assert calls == [10, 3, 10]

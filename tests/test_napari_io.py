@@ -13,7 +13,13 @@ pytest.importorskip("napari")
 
 from napari.layers import Layer  # noqa: E402
 
-from napari_svcode._layers import KIND_KEY, MODEL_KEY, SYSTEM_KEY, object_translate  # noqa: E402
+from napari_svcode._layers import (  # noqa: E402
+    AXIS_LABELS,
+    KIND_KEY,
+    MODEL_KEY,
+    SYSTEM_KEY,
+    object_translate,
+)
 from napari_svcode._reader import get_reader, read_cm2_tiff  # noqa: E402
 from napari_svcode._sample_data import sample_layers  # noqa: E402
 from svcode_core.io import read_tiff, write_tiff  # noqa: E402
@@ -167,3 +173,7 @@ def test_sample_truth_and_frame_share_a_scene_and_the_writer_keeps_the_frames(
     assert read_tiff(path)[2]["frames"] == frames
     [(_, reopened, _)] = read_cm2_tiff(str(path))  # and back into the layer on reopening
     assert reopened["metadata"]["svcode_frames"] == frames
+    # at the raw frames it holds, on an axis named frame
+    assert reopened["translate"][0] == 3
+    if AXIS_LABELS:
+        assert tuple(reopened["axis_labels"]) == ("frame", "y", "x")

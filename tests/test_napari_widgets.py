@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -131,12 +132,23 @@ def _use_model(widget, path: Path) -> None:
 
 # ----------------------------------------------------------------- calibration
 def _drag(layer, index: int, shift) -> None:
-    """Drag point ``index`` of a Points layer by ``shift`` as the select mode does."""
+    """Drag point ``index`` of a Points layer by ``shift`` as the select mode does, in two
+    moves between a press and a release seen by the widget's mouse drag callback (napari
+    hands it one event object whose type changes)."""
+    event = SimpleNamespace(type="mouse_press")
+    callbacks = [callback(layer, event) for callback in layer.mouse_drag_callbacks
+                 if getattr(callback, "__name__", "") == "_track_press"]
+    for callback in callbacks:
+        next(callback)
     start = np.asarray(layer.data[index], dtype=float)
     layer.selected_data = {index}
+    event.type = "mouse_move"
     layer._move({index}, start)
     layer._move({index}, start + np.asarray(shift, dtype=float))
-    layer._drag_start = None
+    layer._drag_start = None  # as napari's release does
+    event.type = "mouse_release"
+    for callback in callbacks:
+        next(callback, None)
 
 
 def test_calibration_rays_and_one_box_move_together_and_save(tmp_path, tiny_system,
@@ -701,17 +713,23 @@ def test_cells_sample_reconstructs_with_lsv_admm(qtbot, make_napari_viewer):
     widget = _dock(viewer, ReconstructWidget)
     widget._panel.method.value = "admm"
     widget._panel.iterations.value = 2
-    ranges: list[int] = []  # the bar is indeterminate while ADMM reports nothing
+    shown: list[tuple[int, bool, str]] = []  # the bar's maximum, the ticker, the status
     set_progress = widget._set_progress
 
     def spy(*args, **kwargs) -> None:
         set_progress(*args, **kwargs)
-        ranges.append(widget._progress.native.maximum())
+        shown.append((widget._progress.native.maximum(), widget._ticker.isActive(),
+                       widget._status.value))
 
     widget._set_progress = spy
     assert widget.start() is not None
     _wait_done(qtbot, widget, 300_000)
-    assert 0 in ranges and widget._progress.value == widget._progress.max == STEPS
+    # determinate throughout (no busy animation); while ADMM prepares, the status line
+    # counts the seconds
+    assert all(top == STEPS for top, _, _ in shown)
+    assert any(ticking and "preparing" in text for _, ticking, text in shown)
+    assert not widget._ticker.isActive()
+    assert widget._progress.value == widget._progress.max == STEPS
     recon = viewer.layers["reconstruction"]
     size = SystemConfig.preset("cm2-mini").sub_view_size
     assert recon.data.shape == (size, size) and np.isfinite(recon.data).all()
@@ -719,6 +737,9 @@ def test_cells_sample_reconstructs_with_lsv_admm(qtbot, make_napari_viewer):
     [entry] = widget.results  # the ground truth was picked: quality and seconds
     assert entry["seconds"] > 0 and np.isfinite(entry["psnr_ring"]) and 0 < entry["ssim"] <= 1
     assert "LSV-ADMM" in widget._results.value and "PSNR" in widget._results.value
+    widget._state["busy"] = ("LSV-ADMM: preparing…", time.perf_counter() - 3.2)
+    widget._tick()
+    assert widget._status.value == "LSV-ADMM: preparing… 3 s"
 
 
 def test_compare_two_methods_side_by_side(qtbot, tiny_system, model_file, make_napari_viewer):
@@ -879,6 +900,42 @@ def test_cancelled_stack_adds_only_the_frames_done(qtbot, monkeypatch, tmp_path,
     assert read_tiff(path)[2]["frames"] == frames
 
 
+def test_a_new_reconstruct_widget_starts_on_the_raw_frame(tiny_system, make_napari_viewer):
+    """Docked after a plain image and a raw frame were opened, in that order, the widget
+    chooses the raw frame (the better fit), not the first image of the list."""
+    viewer = make_napari_viewer()
+    viewer.add_image(np.zeros((64, 64), np.float32), name="edges")
+    viewer.add_image(np.zeros(tiny_system.sensor_shape, np.float32), name="raw",
+                     metadata=layer_metadata(tiny_system, "measurement"))
+    viewer.layers.selection.active = viewer.layers["edges"]
+    widget = _dock(viewer, ReconstructWidget)
+    assert widget._layer.value.name == "raw"
+
+
+def test_a_cancel_during_a_frames_last_step_keeps_the_frame():
+    """run_jobs passes on every report of a frame but the one that all its tiles (or
+    iterations) are done, which only cheap work follows: a cancel pressed during the last
+    step takes effect after the frame's FrameDone (the worker stops before asking for the
+    next item), not at that report, where the finished frame was thrown away. A periphery
+    refinement's report stays (a cancel there stops before the refinement, as documented)."""
+    from napari_svcode.widgets.reconstruct import Job, Started, run_jobs
+
+    class Stepped:
+        def iter_reconstruct(self, frame, return_views):
+            for done in range(3):
+                yield FrameProgress(0, 1, done, 2)
+            yield FrameProgress(0, 1, 2, 2, refining=True)
+            return "result"
+
+    items = list(run_jobs([Job("svcode", Stepped)], np.zeros((2, 4, 4))))
+    reports = [(item.tiles_done, item.refining) for item in items
+               if isinstance(item, FrameProgress)]
+    assert reports == [(0, False), (1, False), (2, True)] * 2
+    assert isinstance(items[0], Started)
+    assert [type(item).__name__ for item in items[-2:]] == ["FrameProgress", "FrameDone"]
+    assert items[-1].result == "result"
+
+
 def test_the_status_line_tells_how_the_last_run_ended(qtbot, monkeypatch, tiny_system,
                                                        model_file, make_napari_viewer, errors):
     model = _slow_model(monkeypatch, model_file, tiny_system, 0.0)
@@ -998,6 +1055,9 @@ def test_cli_command_for_a_folder(tiny_system, make_napari_viewer):
     command = command.replace('"$f"', "in.tif").replace('"${f%.tif}.recon.tif"', "out.tif")
     fixed = build_parser().parse_args(shlex.split(command)[1:]).tv_weight
     assert float(fixed) == widget._panel.tv_weight.value
+    # the command shown follows the settings changed after the copy
+    widget._panel.method.value = "wiener"
+    assert "--method wiener" in widget._command_text.value == widget.command()
 
 
 # ---------------------------------------------------------------------- masks

@@ -39,6 +39,7 @@ from svcode_core.physics.geometry import sub_view_origins
 from ._errors import notify_error
 
 __all__ = [
+    "AXIS_LABELS",
     "CENTRAL_LENS",
     "FRAMES_KEY",
     "KIND_KEY",
@@ -69,6 +70,8 @@ CENTRAL_LENS = 4
 MICROMETRE = "µm"
 #: whether napari layers take ``units`` (0.6 and later); before, world units are unnamed
 LAYER_UNITS = "units" in inspect.signature(Layer.__init__).parameters
+#: whether napari's layers take axis labels (napari 0.5 and later)
+AXIS_LABELS = "axis_labels" in inspect.signature(Layer.__init__).parameters
 
 
 def layer_system(metadata: Mapping[str, Any]) -> SystemConfig | None:

@@ -8,6 +8,7 @@ from pathlib import Path
 from svcode_core.io import read_tiff
 
 from ._layers import (
+    AXIS_LABELS,
     FRAMES_KEY,
     in_micrometres,
     layer_metadata,
@@ -38,7 +39,9 @@ def read_cm2_tiff(path: str | list[str]) -> list[tuple]:
     (set the system in the Calibration widget). Data on the object grid written by this
     package (reconstructions, ground truth, demixed views) are placed over the raw frame.
     Layers are in object-space µm (scale, units and the scale bar) when the system, else
-    the file's resolution, gives the pixel size; in pixels otherwise.
+    the file's resolution, gives the pixel size; in pixels otherwise. Leading axes are
+    named (``frame``, ``lens``), and a partial stack (``svcode_frames``) sits at the raw
+    frames it holds.
     """
     paths = [path] if isinstance(path, str) else list(path)
     layers = []
@@ -50,12 +53,20 @@ def read_cm2_tiff(path: str | list[str]) -> list[tuple]:
         origin = (0.0, 0.0)
         if system is not None and kind in OBJECT_GRID_KINDS:
             origin = object_translate(system)
-        place = placement(system, array.ndim, origin, pixel_size_um=meta.get("pixel_size_um"))
+        labels = (*(("lens", "frame") if kind == "demixed" else ("frame",)), "y", "x")
+        labels = labels[len(labels) - array.ndim:]
+        frames = meta.get("frames")  # a partial stack: which raw frames it holds
+        lead = tuple(float(frames["first"]) if label == "frame" else 0.0
+                     for label in labels[:-2]) if frames else ()  # fmt: skip
+        place = placement(system, array.ndim, origin, lead,
+                          pixel_size_um=meta.get("pixel_size_um"))
         sized = sized or in_micrometres(place)
         metadata = layer_metadata(system, kind, model)
-        if meta.get("frames") is not None:  # a partial stack: which raw frames it holds
-            metadata[FRAMES_KEY] = dict(meta["frames"])
+        if frames is not None:
+            metadata[FRAMES_KEY] = dict(frames)
         kwargs = {"name": Path(item).name.split(".")[0], "metadata": metadata, **place}
+        if AXIS_LABELS:
+            kwargs["axis_labels"] = labels
         layers.append((array, kwargs, "image"))
     if sized:
         show_scale_bar()

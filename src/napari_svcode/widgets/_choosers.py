@@ -70,7 +70,8 @@ def image_layer_box(viewer: napari.viewer.Viewer, label: str,
     With ``fit`` (a score, 0 = does not fit), the box moves to the best-fitting layer
     whenever its current choice does not fit (or is empty) and a fitting one appears, and
     to a newly added layer that fits better than its current choice (a raw frame of the
-    system's shape over a plain image). ``nullable`` adds an empty choice (shown as
+    system's shape over a plain image); a new box starts on the best-fitting layer.
+    ``nullable`` adds an empty choice (shown as
     ``-----``), taken when nothing fits. ``box.refit()`` applies the rule again (for a
     ``fit`` that depends on another choice).
     """
@@ -79,6 +80,15 @@ def image_layer_box(viewer: napari.viewer.Viewer, label: str,
         return [(layer.name, layer) for layer in viewer.layers if isinstance(layer, Image)]
 
     box = ComboBox(label=label, choices=choices, nullable=nullable, tooltip=tooltip)
+
+    def choose_best() -> None:
+        scored = [(fit(layer), index, layer) for index, layer in enumerate(viewer.layers)
+                  if isinstance(layer, Image)]
+        best = max(scored, key=lambda item: item[:2], default=None)
+        if best is not None and best[0] > 0:
+            box.value = best[2]
+        elif nullable:
+            box.value = None
 
     def refit(event: Any = None) -> None:
         box.reset_choices()
@@ -89,21 +99,15 @@ def image_layer_box(viewer: napari.viewer.Viewer, label: str,
         added = getattr(event, "type", None) == "inserted" and isinstance(event.value, Image)
         if added and fit(event.value) > score:
             box.value = event.value
-            return
-        if score > 0:
-            return
-        scored = [(fit(layer), index, layer) for index, layer in enumerate(viewer.layers)
-                  if isinstance(layer, Image)]
-        best = max(scored, key=lambda item: item[:2], default=None)
-        if best is not None and best[0] > 0:
-            box.value = best[2]
-        elif nullable:
-            box.value = None
+        elif score <= 0:
+            choose_best()
 
     for event in (viewer.layers.events.inserted, viewer.layers.events.removed):
         event.connect(refit)
     box.refit = refit
-    refit()
+    box.reset_choices()
+    if fit is not None:  # a new widget starts on the best fit, not on the first layer
+        choose_best()
     return box
 
 

@@ -221,7 +221,8 @@ class CalibrationWidget(Container):
         self._updating = False
         self._drawn_rays: tuple = ()  # the chief rays of the system as drawn
         self._history: list[tuple] = []  # the chief rays before each move, for *Undo*
-        self._drag: Any = None  # the drag (its start) the last move belonged to
+        self._drag: Any = None  # the drag (its press) the last move belonged to
+        self._press: object | None = None  # the mouse press on the rays going on
         self._run: dict[str, Any] = {}
 
     def show_sub_views(self) -> None:
@@ -290,6 +291,7 @@ class CalibrationWidget(Container):
         )
         boxes.events.data.connect(self._on_box_moved)
         rays.events.data.connect(self._on_rays_moved)
+        rays.mouse_drag_callbacks.append(self._track_press)
         rays.selected_data.events.items_changed.connect(self._on_ray_selected)
         rays.mode = "select"
         layers.selection.active = rays
@@ -320,7 +322,7 @@ class CalibrationWidget(Container):
     def _set_rays(self, rays: tuple, lens: int, redraw_rays: bool, drag: Any = None) -> None:
         """Apply moved chief rays and show lens ``lens``'s box; redraw the rays when they
         were moved through the box, or were refused (a ray being dragged is left alone).
-        The rays before are kept for *Undo*, once per ``drag`` (its start; ``None``: once)."""
+        The rays before are kept for *Undo*, once per ``drag`` (its press; ``None``: once)."""
         before = self.system.chief_rays
         try:
             self._apply(self.system.replace(chief_rays=rays))
@@ -356,7 +358,16 @@ class CalibrationWidget(Container):
         padding = np.asarray(self.system.padding)
         positions = np.rint(np.asarray(rays.data, dtype=float) + padding).astype(int)
         self._set_rays(tuple((int(row), int(col)) for row, col in positions), lens, False,
-                       getattr(rays, "_drag_start", None))  # napari's mark of one drag
+                       self._press)
+
+    def _track_press(self, _layer: Any, event: Any) -> Any:
+        """A mouse drag callback of the rays: the moves between a press and its release
+        are one drag, one step to undo (napari hands the later events in as ``event``)."""
+        self._press = object()
+        yield
+        while event.type == "mouse_move":
+            yield
+        self._press = None
 
     def _on_box_moved(self, event) -> None:
         if self._updating or event.action != "changed":

@@ -26,6 +26,7 @@ from magicgui.widgets import (
 )
 from napari.qt.threading import GeneratorWorker, thread_worker
 from napari.utils.notifications import show_info
+from qtpy.QtCore import QTimer
 
 from svcode_core.config import SystemConfig, available_presets
 from svcode_core.evaluation.metrics import image_quality
@@ -143,8 +144,27 @@ def run_jobs(
         reconstructor = job.build()
         for index in frame_order(len(frames), first):
             start = time.perf_counter()
-            result = yield from iter_method(reconstructor, frames[index], return_views)
+            result = yield from _frame_steps(reconstructor, frames[index], return_views)
             yield FrameDone(number, index, result, time.perf_counter() - start)
+
+
+def _frame_steps(reconstructor: Any, frame: np.ndarray, return_views: bool
+                 ) -> Generator[FrameProgress, None, ReconstructionResult]:  # fmt: skip
+    """:func:`iter_method` without the report that every tile or iteration is done: what
+    follows it is cheap, so a cancel pressed during the last step keeps the frame instead
+    of throwing it away at that report."""
+    steps = iter_method(reconstructor, frame, return_views)
+    try:
+        while True:
+            try:
+                item = next(steps)
+            except StopIteration as finished:
+                return finished.value
+            last = item.tiles_total and item.tiles_done == item.tiles_total
+            if not last or item.refining:
+                yield item
+    finally:
+        steps.close()
 
 
 def reconstruct_frames(
@@ -226,6 +246,9 @@ class ReconstructWidget(Container):
                        self._full_scale,
                        self._views):
             widget.changed.connect(self._update_warning)
+        self._ticker = QTimer()
+        self._ticker.setInterval(1000)
+        self._ticker.timeout.connect(self._tick)
         self.worker: GeneratorWorker | None = None
         self.frames_done = 0
         self.results: list[dict[str, Any]] = []
@@ -303,6 +326,12 @@ class ReconstructWidget(Container):
         self._warning.visible = bool(warning)
         self._run.text = "Reconstruct"
         self._confirmed = None
+        if self._command_text.value:  # a command shown follows the settings
+            try:
+                self._command_text.value = self.command()
+            except ValueError:
+                self._command_text.value = ""
+                self._command_text.visible = False
 
     def _settings_key(self) -> tuple:
         panels = tuple((panel.method.value, tuple(sorted(panel.options().items())))
@@ -469,22 +498,34 @@ class ReconstructWidget(Container):
 
     def _set_progress(self, job: int, frames_done: int, fraction: float, text: str,
                       force: bool = True, busy: bool = False) -> None:
-        """Show the progress (coalesced to :data:`STEPS` a frame) and ``text``; ``busy``
-        makes the bar indeterminate while a step reports nothing of its own (building a
-        forward model, a frame of a method without tiles or iterations)."""
+        """Show the progress (coalesced to :data:`STEPS` a frame) and ``text``. ``busy``:
+        a step that reports nothing of its own (building a forward model, a frame without
+        tiles or iterations) leaves the bar where it is and the status line counts its
+        seconds (:meth:`_tick`); an indeterminate bar's animation cost such a frame as much
+        CPU again under software rendering."""
         state = self._state
+        if busy:
+            if (state.get("busy") or ("",))[0] != text:
+                state["busy"] = (text, time.perf_counter())
+                self._status.value = text
+            self._ticker.start()
+            return
+        state["busy"] = None
+        self._ticker.stop()
         total = STEPS * state["count"] * len(state["jobs"])
-        if busy != state.get("busy", False):
-            state["busy"] = busy
-            self._progress.native.setRange(0, 0 if busy else total)
-            force = True
         value = min(int(STEPS * (job * state["count"] + frames_done + fraction)), total)
         if value == state.get("shown") and not force:
             return
-        if not busy:
-            state["shown"] = value
-            self._progress.value = value
+        state["shown"] = value
+        self._progress.value = value
         self._status.value = text
+
+    def _tick(self) -> None:
+        """Once a second during a busy step: its text and the seconds it has taken."""
+        busy = self._state.get("busy") if self._state else None
+        if busy:
+            text, since = busy
+            self._status.value = f"{text} {time.perf_counter() - since:.0f} s"
 
     def _time_left(self, frames: float) -> str:
         """``", about N s left"`` for the running job, ``frames`` of its frames done, at
@@ -616,9 +657,8 @@ class ReconstructWidget(Container):
         state = self._state
         self._run.enabled, self._cancel.enabled = True, False
         total = STEPS * state["count"] * len(state["jobs"])
-        if state.get("busy"):
-            state["busy"] = False
-            self._progress.native.setRange(0, total)
+        state["busy"] = None
+        self._ticker.stop()
         elapsed = time.perf_counter() - state["started"]
         # the bar shows what was kept: the jobs finished and this job's frames done
         kept = STEPS * (state.get("job", 0) * state["count"] + self.frames_done)
