@@ -69,8 +69,9 @@ def image_layer_box(viewer: napari.viewer.Viewer, label: str,
 
     With ``fit`` (a score, 0 = does not fit), the box moves to the best-fitting layer
     whenever its current choice does not fit (or is empty) and a fitting one appears, and
-    to a newly added layer that fits better than its current choice (a raw frame of the
-    system's shape over a plain image); a new box starts on the best-fitting layer.
+    to a newly added layer that fits at least as well as its current choice (a raw frame of
+    the system's shape over a plain image, a new raw frame over an older one); a new box
+    starts on the best-fitting layer, the newest of equals.
     ``nullable`` adds an empty choice (shown as
     ``-----``), taken when nothing fits. ``box.refit()`` applies the rule again (for a
     ``fit`` that depends on another choice).
@@ -97,7 +98,7 @@ def image_layer_box(viewer: napari.viewer.Viewer, label: str,
         current = box.value
         score = fit(current) if current is not None else 0
         added = getattr(event, "type", None) == "inserted" and isinstance(event.value, Image)
-        if added and fit(event.value) > score:
+        if added and fit(event.value) >= max(score, 1):  # the newest of the best fits
             box.value = event.value
         elif score <= 0:
             choose_best()

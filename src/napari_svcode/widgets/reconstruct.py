@@ -574,7 +574,8 @@ class ReconstructWidget(Container):
         if state["views"] is not None:
             state["views"][:, item.index] = item.result.views
         self.frames_done = len(state["done"])
-        self._set_progress(item.job, self.frames_done, 0.0, f"{title}: {where} done")
+        self._set_progress(item.job, self.frames_done, 0.0,
+                           f"{title}: {where} done{self._time_left(self.frames_done)}")
         self._show(job)
         if self.frames_done == 1:
             self._record(item, job)
