@@ -197,7 +197,8 @@ class ReconstructWidget(Container):
     ground truth of the raw frame's own simulated scene (``svcode_scene``), if there is
     one; a truth of another scene is not used, and the status line says so. The status
     line tells how the last run ended (done, cancelled, failed, not run). Runs estimated
-    to take very long or not to fit in memory ask for a second press. *Copy CLI command*
+    to take very long or not to fit in memory, and integer frames that use fewer bits than
+    their type with no full scale set (their notice sets it), ask for a second press. *Copy CLI command*
     gives the equivalent ``svcode reconstruct`` command for a folder of recordings.
     """
 
@@ -430,12 +431,17 @@ class ReconstructWidget(Container):
         scale = self._full_scale.value
         self._warn_about(frames, scale)
         warning = self._cost_warning()
-        if warning and self._confirmed != self._settings_key():
+        few_bits = scale is None and few_bits_scale(frames) is not None
+        if (warning or few_bits) and self._confirmed != self._settings_key():
             self._confirmed = self._settings_key()
             self._run.text = "Reconstruct anyway"
             self._status.value = "Not run yet: press 'Reconstruct anyway' to confirm."
-            notify_warning(warning, "press 'Reconstruct anyway' to run, or change the "
-                                    "settings (tile size, frames, iterations)")
+            if few_bits:  # its notice, just shown, has the one-click fix
+                self._status.value = ("Not run yet: set the full scale (the notice's button) "
+                                      "or press 'Reconstruct anyway'.")
+            if warning:
+                notify_warning(warning, "press 'Reconstruct anyway' to run, or change the "
+                                        "settings (tile size, frames, iterations)")
             return None
         first = current_index(layer, self._viewer.dims.point)[0] if frames.shape[0] > 1 else 0
         if compare:
