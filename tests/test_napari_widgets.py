@@ -14,7 +14,12 @@ import torch
 pytest.importorskip("napari")
 
 import napari_svcode._errors as plugin_errors  # noqa: E402
-from napari_svcode._layers import SYSTEM_KEY, layer_metadata, object_translate  # noqa: E402
+from napari_svcode._layers import (  # noqa: E402
+    LAYER_UNITS,
+    SYSTEM_KEY,
+    layer_metadata,
+    object_translate,
+)
 from napari_svcode.widgets import (  # noqa: E402
     CalibrationWidget,
     MaskWidget,
@@ -1199,6 +1204,16 @@ def test_simulate_brightness_saturation_truth_and_the_reconstruct_choosers(
     assert truth.metadata["svcode_scene"] == raw.metadata["svcode_scene"]
     assert truth.metadata["svcode_kind"] == "object"
     assert reconstruct._layer.value is raw and reconstruct._truth.value is truth
+    # the photo, in pixels, now covers the truth's field in the same units
+    photo = viewer.layers["photo"]
+    np.testing.assert_allclose(photo.scale, np.asarray(truth.scale) * size / 512)
+    for layer, count in ((photo, 512), (truth, size)):  # the outer pixel edges
+        low = np.asarray(layer.translate) - np.asarray(layer.scale) / 2
+        np.testing.assert_allclose(low + count * np.asarray(layer.scale),
+                                   np.asarray(truth.translate) + (size - 0.5) * truth.scale)
+        np.testing.assert_allclose(low, np.asarray(truth.translate) - np.asarray(truth.scale) / 2)
+    if LAYER_UNITS:
+        assert tuple(photo.units) == tuple(truth.units)
 
     widget._peak.value = 0.3  # dimmer: no saturation, a truth of that peak, another scene
     assert widget.start() is not None

@@ -49,7 +49,9 @@ class SimulateWidget(Container):
     object as ``"<layer> (simulated truth)"`` on the object grid over it (hidden), both
     with the system and one scene id in their metadata (the Reconstruct widget scores
     against this truth), in object-space µm when the system knows its pixel size. A frame
-    with more than 1 % of its pixels saturated is warned about.
+    with more than 1 % of its pixels saturated is warned about. An object layer in pixels
+    is placed over the truth in µm (its centred square on the object grid), so that every
+    layer shares one unit.
     A simulation estimated (:func:`svcode_core.physics.cm2.simulation_cost`) to need more than
     1 GiB or 10 s is announced with its estimate first; one needing more memory than the
     machine has available is refused.
@@ -96,7 +98,7 @@ class SimulateWidget(Container):
             return simulator(system).simulate(obj, seed=self._seed.value,
                                               noise=self._noise.value)
 
-        worker = function_worker(run, lambda scene: self._add(layer.name, scene, system),
+        worker = function_worker(run, lambda scene: self._add(layer, scene, system),
                                  "choose a smaller system, or free memory and try again")
         self.worker = worker
         self._run.enabled = False
@@ -119,12 +121,17 @@ class SimulateWidget(Container):
             show_warning(f"Simulating {system.name} (K = {cost.rank}): {need}.")
         return True
 
-    def _add(self, name: str, scene: Simulation, system: SystemConfig) -> None:
+    def _add(self, source: napari.layers.Image, scene: Simulation,
+             system: SystemConfig) -> None:
+        name = source.name
         scene_id = f"simulated {name} seed {self._seed.value} {uuid.uuid4().hex[:8]}"
+        on_grid = placement(system, 2, object_translate(system))
+        if in_micrometres(on_grid) and not in_micrometres(source):
+            _place_over_truth(source, on_grid, system.sub_view_size)
         self._viewer.add_image(scene.object, name=f"{name} (simulated truth)",
                                colormap="magma", visible=False,
                                metadata=layer_metadata(system, "object", scene=scene_id),
-                               **placement(system, 2, object_translate(system)))
+                               **on_grid)
         place = placement(system)
         self._viewer.add_image(scene.measurement, name=f"{name} (simulated raw)",
                                colormap="gray", **place,
@@ -137,6 +144,26 @@ class SimulateWidget(Container):
             notify_warning(f"{saturated:.0%} of the simulated frame's pixels are saturated "
                            f"(at the sensor's full scale {full:g})",
                            "lower the object peak (brightness) and simulate again")
+
+
+def _place_over_truth(source: napari.layers.Image, on_grid: dict, size: int) -> None:
+    """Put a plain image layer in pixels where the simulation put its object: its centred
+    square (what :func:`~svcode_core.phantoms.from_image` keeps) over the ``size``-pixel
+    object grid placed by ``on_grid``, in the same units (mixed units make napari warn at
+    every redraw and drop the units)."""
+    rows, cols = source.data.shape[-3:-1] if source.rgb else source.data.shape[-2:]
+    side = min(rows, cols)
+    grid = [float(step) for step in on_grid["scale"]]
+    pixel = [step * size / side for step in grid]
+    # pixel centres: a resize maps areas, so the square's first centre sits half a source
+    # pixel less half an object pixel from the grid's edge
+    corner = [float(at) - (extent - side) // 2 * step + (step - unit) / 2
+              for at, extent, step, unit in zip(on_grid["translate"], (rows, cols), pixel, grid)]
+    lead = source.ndim - 2
+    source.scale = (*tuple(source.scale)[:lead], *pixel)
+    source.translate = (*tuple(source.translate)[:lead], *corner)
+    if "units" in on_grid:
+        source.units = (*tuple(source.units)[:lead], *on_grid["units"])
 
 
 def _available_memory() -> int | None:
