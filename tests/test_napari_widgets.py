@@ -1179,6 +1179,36 @@ def test_simulate_widget_makes_a_raw_frame(qtbot, tmp_path, tiny_system, make_na
     assert tuple(layer.scale) == (10, 10) and str(layer.units[-1]) == "micrometer"
 
 
+def test_simulate_through_a_departed_instrument(qtbot, tmp_path, tiny_system,
+                                                make_napari_viewer):
+    """The instrument choice simulates through a named set of departures, as svcode
+    simulate --departures: another frame of the same object, recorded with the nominal
+    system, equal to the core's."""
+    from svcode_core.phantoms import from_image
+    from svcode_core.physics.simulate import Simulator
+
+    viewer = make_napari_viewer()
+    image = np.random.default_rng(3).random((64, 64))
+    viewer.add_image(image, name="photo")
+    widget = _dock(viewer, SimulateWidget)
+    widget._system_choice.source.value = widget._system_choice.FROM_FILE
+    widget._system_choice.path.value = tiny_system.save(tmp_path / "system.json")
+    widget._noise.value, widget._peak.value = False, 0.5
+    frames = {}
+    for name in ("none", "calibration"):
+        widget._departures.value = name
+        assert widget.start() is not None
+        qtbot.waitUntil(lambda: widget._run.enabled and viewer.layers[-1].name.startswith(
+            "photo (simulated raw)") and len(viewer.layers) == 1 + 2 * (len(frames) + 1),
+            timeout=20_000)
+        frames[name] = viewer.layers[-1]
+    assert all(layer.metadata[SYSTEM_KEY] == tiny_system for layer in frames.values())
+    obj = from_image(image, tiny_system.sub_view_size) * np.float32(0.5)
+    expected = Simulator(tiny_system, departures="calibration").simulate(obj, noise=False)
+    np.testing.assert_allclose(frames["calibration"].data, expected.measurement, atol=1e-6)
+    assert np.abs(frames["calibration"].data - frames["none"].data).max() > 1e-3
+
+
 def test_simulate_brightness_saturation_truth_and_the_reconstruct_choosers(
         qtbot, tmp_path, tiny_system, make_napari_viewer, warnings):
     """A bright object warns that the frame saturates, a lower peak does not; the truth

@@ -17,9 +17,13 @@ __all__ = ["FREE_FIELDS", "NO_BUNDLED_MODEL", "available_devices", "bundled_mode
 
 
 @functools.lru_cache(maxsize=4)
-def simulator(system: SystemConfig) -> Simulator:
-    """The :class:`~svcode_core.physics.simulate.Simulator` of ``system`` (PSFs built once)."""
-    return Simulator(system)
+def simulator(system: SystemConfig, departures: str = "none") -> Simulator:
+    """The :class:`~svcode_core.physics.simulate.Simulator` of ``system`` as it is, or of
+    the instrument that departs from it by a named set of departures
+    (:data:`~svcode_core.physics.departures.NAMED_SETS`); PSFs built once."""
+    if departures == "none":
+        return Simulator(system)
+    return simulator(system).with_departures(departures)
 
 
 NO_BUNDLED_MODEL = (

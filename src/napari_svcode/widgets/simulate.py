@@ -7,13 +7,14 @@ from pathlib import Path
 
 import napari
 import numpy as np
-from magicgui.widgets import CheckBox, Container, FloatSpinBox, PushButton, SpinBox
+from magicgui.widgets import CheckBox, ComboBox, Container, FloatSpinBox, PushButton, SpinBox
 from napari.qt.threading import FunctionWorker
 from napari.utils.notifications import show_warning
 
 from svcode_core.config import ConfigError, SystemConfig
 from svcode_core.phantoms import from_image
 from svcode_core.physics.cm2 import simulation_cost
+from svcode_core.physics.departures import NAMED_SETS
 from svcode_core.physics.simulate import Simulation
 
 from .._errors import notify_warning
@@ -45,7 +46,9 @@ class SimulateWidget(Container):
     ``S × S`` object grid and normalised (:func:`svcode_core.phantoms.from_image`), then
     scaled to the chosen *object peak* (its brightest pixel, in units of the sensor's full
     scale: the brightness) and imaged with the system's SV forward model and sensor noise
-    in a worker thread. The raw frame is added as ``"<layer> (simulated raw)"`` and the
+    in a worker thread, or through an *instrument* that departs from the system by a named
+    set of departures (as ``svcode simulate --departures``; the frame records the nominal
+    system). The raw frame is added as ``"<layer> (simulated raw)"`` and the
     object as ``"<layer> (simulated truth)"`` on the object grid over it (hidden), both
     with the system and one scene id in their metadata (the Reconstruct widget scores
     against this truth), in object-space µm when the system knows its pixel size. A frame
@@ -63,13 +66,19 @@ class SimulateWidget(Container):
         self._system_choice = SystemChooser(from_layer=False)
         self._seed = SpinBox(label="noise seed", min=0, max=2**31 - 1, value=0)
         self._noise = CheckBox(text="sensor noise", value=True)
+        self._departures = ComboBox(
+            label="instrument", choices=list(NAMED_SETS), value="none",
+            tooltip="the true instrument: the system itself (none) or a named set of "
+                    "departures from it, as svcode simulate --departures (realistic: a "
+                    "drifted array, other aberrations, haze and a real camera); the frame "
+                    "records the nominal system, as a recording would")
         self._peak = FloatSpinBox(label="object peak", min=0.001, max=100.0, step=0.05,
                                   value=1.0, tooltip="brightness: the object's brightest pixel "
                                   "in units of the sensor's full scale (lower it if the raw "
                                   "frame saturates)")
         self._run = PushButton(text="Simulate")
-        super().__init__(widgets=[self._layer, self._system_choice, self._peak, self._seed,
-                                  self._noise, self._run])
+        super().__init__(widgets=[self._layer, self._system_choice, self._departures,
+                                  self._peak, self._seed, self._noise, self._run])
         self._run.changed.connect(self.start)
         self.worker: FunctionWorker | None = None
 
@@ -94,9 +103,11 @@ class SimulateWidget(Container):
         if not self._affordable(system):
             return None
 
+        departures = self._departures.value
+
         def run() -> Simulation:
-            return simulator(system).simulate(obj, seed=self._seed.value,
-                                              noise=self._noise.value)
+            return simulator(system, departures).simulate(obj, seed=self._seed.value,
+                                                          noise=self._noise.value)
 
         worker = function_worker(run, lambda scene: self._add(layer, scene, system),
                                  "choose a smaller system, or free memory and try again")
