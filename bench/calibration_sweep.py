@@ -395,9 +395,10 @@ def write_markdown(result: dict[str, Any]) -> None:
                      f"{entry['scan']['cpu_s']:.0f} | {entry['calibration']['cpu_s']:.0f} | "
                      f"{entry.get('evaluation', {}).get('cpu_s', 0):.0f} |")
     if result.get("attribution"):
-        lines += ["", f"What is left of the chief-ray error of `{result['instruments'][0]['name']}` "
-                  "(same scan recipe; without its aberration errors, and with its truth rendered "
-                  "closer to its full PSFs):", "",
+        first = result["instruments"][0]["name"]
+        lines += ["", f"What is left of the chief-ray error of `{first}` (same scan recipe; "
+                  "without its aberration errors, and with its truth rendered closer to its "
+                  "full PSFs):", "",
                   "| instrument | chief-ray error max / mean px | per lens px | forward error |",
                   "| --- | --- | --- | --- |"]
         for entry in [result["instruments"][0], *result["attribution"]]:

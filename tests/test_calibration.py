@@ -423,7 +423,7 @@ def test_offsets_are_fitted_beside_a_centroid_shift_the_lenses_share(tiny_system
     offsets = np.random.default_rng(0).uniform(-0.5, 0.5, (9, 2))
     b = np.array([0.3, -0.2])[: len(FIELD_POWERS)]
     h = np.linalg.norm(field, axis=-1, keepdims=True)
-    shift = offsets + sum(c * field * h ** (p - 1) for c, p in zip(b, FIELD_POWERS))
+    shift = offsets + sum(c * field * h ** (p - 1) for c, p in zip(b, FIELD_POWERS, strict=True))
     axes = np.asarray(tiny_system.lens_axes)
     use = np.einsum("nlc,lc->nl", field, axes) <= 0  # towards the centre; all for lens 4
     fitted, errors, field_shift = _fit_offsets(shift, use, field)

@@ -198,8 +198,9 @@ class ReconstructWidget(Container):
     one; a truth of another scene is not used, and the status line says so. The status
     line tells how the last run ended (done, cancelled, failed, not run). Runs estimated
     to take very long or not to fit in memory, and integer frames that use fewer bits than
-    their type with no full scale set (their notice sets it), ask for a second press. *Copy CLI command*
-    gives the equivalent ``svcode reconstruct`` command for a folder of recordings.
+    their type with no full scale set (their notice sets it), ask for a second press.
+    *Copy CLI command* gives the equivalent ``svcode reconstruct`` command for a folder of
+    recordings.
     """
 
     def __init__(self, napari_viewer: napari.viewer.Viewer) -> None:

@@ -169,7 +169,8 @@ def _place_over_truth(source: napari.layers.Image, on_grid: dict, size: int) -> 
     # pixel centres: a resize maps areas, so the square's first centre sits half a source
     # pixel less half an object pixel from the grid's edge
     corner = [float(at) - (extent - side) // 2 * step + (step - unit) / 2
-              for at, extent, step, unit in zip(on_grid["translate"], (rows, cols), pixel, grid)]
+              for at, extent, step, unit
+              in zip(on_grid["translate"], (rows, cols), pixel, grid, strict=True)]
     lead = source.ndim - 2
     source.scale = (*tuple(source.scale)[:lead], *pixel)
     source.translate = (*tuple(source.translate)[:lead], *corner)

@@ -438,7 +438,8 @@ def _fit_offsets(shift: np.ndarray, use: np.ndarray, field: np.ndarray
 def _shared_shift(field: np.ndarray, field_shift: np.ndarray) -> np.ndarray:
     """``(..., 2)`` centroid-shift departure ``Σ_j b_j |f|^(j-1) f`` at field vectors ``field``."""
     h = np.hypot(field[..., 0], field[..., 1])[..., None]
-    return sum(b * field * h ** (power - 1) for b, power in zip(field_shift, FIELD_POWERS))
+    terms = zip(field_shift, FIELD_POWERS, strict=True)
+    return sum(b * field * h ** (power - 1) for b, power in terms)
 
 
 def fit_array(offsets: np.ndarray, system: SystemConfig) -> tuple[np.ndarray, float, np.ndarray]:
@@ -811,7 +812,8 @@ def report_text(calibration: Calibration, nominal: SystemConfig) -> str:
         f"lens array: shift ({cal.array_shift[0]:+.3f}, {cal.array_shift[1]:+.3f}) px, "
         f"rotation {cal.array_rotation_deg:+.4f} deg",
         "spot centroids off the nominal optics' along the field by "
-        + " ".join(f"{b:+.3f} h^{power}" for b, power in zip(cal.field_shift, FIELD_POWERS))
+        + " ".join(f"{b:+.3f} h^{power}"
+                   for b, power in zip(cal.field_shift, FIELD_POWERS, strict=True))
         + f" px ({cal.field_shift.sum():+.3f} px at the edge of a lens's field, h = 1)",
         "lens  nominal ray   fitted ray            offset (+- s.e.) px            "
         "per-lens residual px  spots  centroid rms px  K  peak throughput",
@@ -839,10 +841,11 @@ def save_calibration(calibration: Calibration, out_dir: str | Path,
 
     Files: ``system.json`` (``psf_model`` = ``psfs.tif``, relative), ``psfs.tif`` and
     ``psfs.positions.json`` (:func:`svcode_core.physics.psf_io.save_psfs`), ``calibration.json``
-    (fitted chief rays, offsets, array motion, the centroid shift off the nominal optics, throughput, ranks, the PSF FWHM ``(9, G·G)``
-    in pixels and micrometres) and ``report.txt``. The report's figure, ``report.png``, is
-    drawn above the physics (:func:`svcode_core.evaluation.figures.calibration_figure`, by
-    ``svcode calibrate`` and the Calibration widget).
+    (fitted chief rays, offsets, array motion, the centroid shift off the nominal optics,
+    throughput, ranks, the PSF FWHM ``(9, G·G)`` in pixels and micrometres) and
+    ``report.txt``. The report's figure, ``report.png``, is drawn above the physics
+    (:func:`svcode_core.evaluation.figures.calibration_figure`, by ``svcode calibrate`` and
+    the Calibration widget).
 
     Returns
     -------
@@ -868,7 +871,8 @@ def save_calibration(calibration: Calibration, out_dir: str | Path,
         "array_shift_px": cal.array_shift.tolist(),
         "array_rotation_deg": cal.array_rotation_deg,
         "lens_residuals_px": cal.lens_residuals.tolist(),
-        "field_shift_px": dict(zip((f"h^{p}" for p in FIELD_POWERS), cal.field_shift.tolist())),
+        "field_shift_px": dict(zip((f"h^{p}" for p in FIELD_POWERS), cal.field_shift.tolist(),
+                                   strict=True)),
         "centroid_rms_px": cal.residual_rms.tolist(),
         "throughput": cal.throughput.tolist(),
         "ranks": list(cal.ranks),
