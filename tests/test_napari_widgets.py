@@ -1126,7 +1126,7 @@ def test_a_failure_inside_a_worker_is_one_notice(qtbot, monkeypatch, tmp_path, t
         def simulate(self, *args, **kwargs):
             raise MemoryError("cannot allocate 6.00 GiB (simulated)")
 
-    monkeypatch.setattr(simulate_module, "simulator", lambda system: Broken())
+    monkeypatch.setattr(simulate_module, "simulator", lambda system, departures: Broken())
     simulate = _dock(viewer, SimulateWidget)
     viewer.add_image(np.ones((70, 90)), name="cells")
     simulate._layer.value = viewer.layers["cells"]
