@@ -1063,6 +1063,10 @@ def test_cli_command_for_a_folder(tiny_system, make_napari_viewer):
     # the command shown follows the settings changed after the copy
     widget._panel.method.value = "wiener"
     assert "--method wiener" in widget._command_text.value == widget.command()
+    # and the method's caveat is said where it is chosen (Wiener's scale), for it only
+    assert "crosstalk" in widget._panel.caveat.value and _shown(widget._panel.caveat)
+    widget._panel.method.value = "admm"
+    assert not widget._panel.caveat.value and not _shown(widget._panel.caveat)
 
 
 # ---------------------------------------------------------------------- masks

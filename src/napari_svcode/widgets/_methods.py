@@ -17,7 +17,15 @@ from pathlib import Path
 from typing import Any
 
 import psutil
-from magicgui.widgets import CheckBox, ComboBox, Container, FileEdit, FloatSpinBox, SpinBox
+from magicgui.widgets import (
+    CheckBox,
+    ComboBox,
+    Container,
+    FileEdit,
+    FloatSpinBox,
+    Label,
+    SpinBox,
+)
 from magicgui.widgets.bases import ValueWidget
 
 from svcode_core.config import SystemConfig
@@ -165,7 +173,10 @@ class MethodPanel(Container):
                     box.changed.connect(lambda on, w=widget: setattr(w, "enabled", not on))
                     widget.enabled = not box.value
                     self._widgets[_auto_key(option)] = box
-        super().__init__(widgets=[self.method, *self._widgets.values()], labels=True)
+        self.caveat = Label(value="")
+        self.caveat.native.setWordWrap(True)
+        super().__init__(widgets=[self.method, self.caveat, *self._widgets.values()],
+                         labels=True)
         self.margins = (0, 0, 0, 0)
         self.method.changed.connect(self._show_options)
         self._show_options(self.method.value)
@@ -193,6 +204,8 @@ class MethodPanel(Container):
                 self._shows[_key(option)] = option
         self.precision.choices = list(entry.precisions)
         self.precision.value = entry.precisions[0]
+        self.caveat.value = f"⚠ {entry.caveat}" if entry.caveat else ""
+        self.caveat.visible = bool(entry.caveat)
 
     # ---------------------------------------------------------------- values
     def options(self) -> dict[str, Any]:

@@ -244,6 +244,9 @@ class Method:
     reconstructor : str
         Its reconstructor class, ``"module:Class"`` relative to :mod:`svcode_core.methods`
         (:func:`reconstructor_class`).
+    caveat : str
+        What its output cannot be read for, said where the method is chosen; empty if
+        nothing.
     """
 
     name: str
@@ -254,6 +257,7 @@ class Method:
     options: tuple[Option, ...] = ()
     architecture: str | None = None
     reconstructor: str = ""
+    caveat: str = ""
 
     @property
     def needs_weights(self) -> bool:
@@ -391,15 +395,18 @@ _RL_OPTIONS = (
            "regime, at 3x the time)"),
 )  # fmt: skip
 _DECONVOLUTION = ".baselines:DeconvolutionReconstructor"
+_CROSSTALK = ("approximate intensities: each view also holds its neighbours' crosstalk, "
+              "which this method does not model; its output is divided by its response to a "
+              "uniform object, so only a uniform scene comes out in the object's units")
 _ALL = (
     Method(SVCODE, "SV-CoDe (network)", "SV-CoDe", SVCODE, ("fp32", "bf16", "fp16"),
            _SVCODE_OPTIONS, "SVCoDe", ".svcode:Reconstructor"),
     Method("admm", "LSV-ADMM (TV)", "LSV-ADMM", MODEL_BASED, ("fp32", "fp64"), _ADMM_OPTIONS,
            reconstructor=".baselines:AdmmReconstructor"),
     Method("wiener", "Wiener (per view, fused)", "Wiener", MODEL_BASED, ("fp32", "fp64"),
-           _WIENER_OPTIONS, reconstructor=_DECONVOLUTION),
+           _WIENER_OPTIONS, reconstructor=_DECONVOLUTION, caveat=_CROSSTALK),
     Method("rl", "Richardson-Lucy (per view, fused)", "Richardson-Lucy", MODEL_BASED,
-           ("fp32", "fp64"), _RL_OPTIONS, reconstructor=_DECONVOLUTION),
+           ("fp32", "fp64"), _RL_OPTIONS, reconstructor=_DECONVOLUTION, caveat=_CROSSTALK),
     Method("multiwiener", "MultiWienerNet (learned)", "MultiWienerNet", LEARNED,
            ("fp32", "bf16"), architecture="MultiWienerNet",
            reconstructor=".learned.reconstruct:LearnedReconstructor"),
