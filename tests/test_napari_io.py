@@ -177,3 +177,9 @@ def test_sample_truth_and_frame_share_a_scene_and_the_writer_keeps_the_frames(
     assert reopened["translate"][0] == 3
     if AXIS_LABELS:
         assert tuple(reopened["axis_labels"]) == ("frame", "y", "x")
+        for shape, lead in (((9, size, size), ("lens",)), ((9, 2, size, size), ("lens", "frame")),
+                            ((size, size), ())):
+            views = tmp_path / f"views{len(shape)}.tif"
+            write_tiff(views, np.zeros(shape, np.float32), tiny_system, kind="demixed")
+            [(_, kwargs, _)] = read_cm2_tiff(str(views))
+            assert tuple(kwargs["axis_labels"]) == (*lead, "y", "x")

@@ -53,8 +53,10 @@ def read_cm2_tiff(path: str | list[str]) -> list[tuple]:
         origin = (0.0, 0.0)
         if system is not None and kind in OBJECT_GRID_KINDS:
             origin = object_translate(system)
-        labels = (*(("lens", "frame") if kind == "demixed" else ("frame",)), "y", "x")
-        labels = labels[len(labels) - array.ndim:]
+        lead = ("lens", "frame")[: array.ndim - 2] if kind == "demixed" else ("frame",)
+        if len(lead) != array.ndim - 2:  # nothing this package writes
+            lead = tuple(f"axis {axis}" for axis in range(array.ndim - 2))
+        labels = (*lead, "y", "x")
         frames = meta.get("frames")  # a partial stack: which raw frames it holds
         lead = tuple(float(frames["first"]) if label == "frame" else 0.0
                      for label in labels[:-2]) if frames else ()  # fmt: skip
