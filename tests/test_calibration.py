@@ -405,6 +405,10 @@ def test_report_gives_the_psf_fwhm_in_pixels_and_micrometres(scan, tmp_path):
     assert saved["object_pixel_um"] == 10.0
     np.testing.assert_allclose(saved["psf_fwhm_um"], 10 * np.asarray(saved["psf_fwhm_px"]),
                                rtol=1e-3)
+    # the spots' move off the nominal optics: its coefficients and its value at h = 1
+    assert list(saved["field_shift_px"]) == ["h^1", "h^3"]
+    edge = sum(saved["field_shift_px"].values())
+    assert f"{edge:+.3f} px at the edge of a lens's field" in text
     unknown = calibration.system.replace(object_pixel_um=None)
     text = report_text(dataclasses.replace(calibration, system=unknown), system)
     assert "pixel size unknown" in text and f"{centre:6.2f}" in text
