@@ -10,7 +10,7 @@ import pytest
 import torch
 from test_cm2 import gaussian_psfs
 
-from svcode_core.config import SystemConfig
+from svcode_core.config import ConfigError, SystemConfig
 from svcode_core.evaluation.metrics import field_zones
 from svcode_core.methods.model_file import load_model
 from svcode_core.network import ModelConfig
@@ -117,6 +117,28 @@ def test_interrupted_generation_resumes_to_the_same_data(tiny_data, tmp_path):
 
 
 # ----------------------------------------------------------------------------- sampler
+def test_a_float16_store_gives_the_same_samples_to_its_rounding(tiny_data, tmp_path):
+    """--dtype float16: the same frames on half the disk; every sample is read as float32
+    and equals the float32 store's to float16 rounding (relative 2^-11, and 2^-24 absolute
+    below float16's normal range); a float32 dataset keeps the recipe it was made with."""
+    recipe = dataclasses.replace(RECIPE, dtype="float16")
+    half = generate_dataset(tmp_path / "half", tiny_data.system, recipe,
+                            tiny_simulator(tiny_data.system), progress=False)
+    assert half.views.dtype == np.float16 and half.manifest["dtype"] == "float16"
+    assert (tmp_path / "half" / "views.npy").stat().st_size < 0.51 * (
+        tiny_data.path / "views.npy").stat().st_size
+    assert "dtype" not in RECIPE.to_dict() and half.recipe == recipe
+    full = PatchDataset(tiny_data, tiny_data.train_frames, noise=False)
+    short = PatchDataset(half, half.train_frames, noise=False)
+    for index in (0, len(full) - 1):
+        a, b = full[index], short[index]
+        for key in ("views", "demixed", "object"):
+            assert b[key].dtype == torch.float32
+            np.testing.assert_allclose(b[key], a[key], rtol=2.0**-11, atol=2.0**-24)
+    with pytest.raises(ConfigError, match="dtype: must be one of float32, float16"):
+        dataclasses.replace(RECIPE, dtype="float64").validate()
+
+
 def test_view_patches_of_the_presets_are_disjoint(tiny_system):
     for name in ("cm2-mini", "cm2-v2"):
         system = SystemConfig.preset(name)

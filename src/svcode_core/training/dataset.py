@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 from tqdm.auto import tqdm
 
 from ..config import N_LENSES, ConfigError, SystemConfig, check_int, check_number
@@ -44,6 +45,7 @@ from ..phantoms import KINDS, make_object
 from ..physics.departures import Departures
 from ..physics.noise import SensorModel
 from ..physics.simulate import Simulator
+from .settings import STORE_DTYPES
 
 __all__ = [
     "DATA_FORMAT",
@@ -84,6 +86,9 @@ class DataRecipe:
         every frame from the nominal system.
     instrument_frames : int
         Consecutive frames sharing one draw of the optical departures.
+    dtype : {"float32", "float16"}
+        How the arrays are stored: float16 halves the disk (a paper-scale frame's arrays
+        are 438 MB in float32) at a relative rounding of 2⁻¹¹; samples are read as float32.
     """
 
     frames: int
@@ -93,6 +98,7 @@ class DataRecipe:
     brightness: tuple[float, float] = (0.4, 1.0)
     departures: Departures | None = None
     instrument_frames: int = 8
+    dtype: str = "float32"
 
     def validate(self) -> DataRecipe:
         """Raise ``ValueError`` (:class:`~svcode_core.config.ConfigError`) naming the first
@@ -113,6 +119,9 @@ class DataRecipe:
                 raise ConfigError(f"departures: must be Departures, got {self.departures!r}")
             self.departures.validate()
         check_int("instrument_frames", self.instrument_frames, 1)
+        if self.dtype not in STORE_DTYPES:
+            raise ConfigError(f"dtype: must be one of {', '.join(STORE_DTYPES)}, "
+                              f"got {self.dtype!r}")
         return self
 
     def to_dict(self) -> dict[str, Any]:
@@ -122,6 +131,8 @@ class DataRecipe:
         if self.departures is not None:
             data["departures"] = self.departures.to_dict()
             data["instrument_frames"] = self.instrument_frames
+        if self.dtype != "float32":  # float32 datasets keep the recipe they were made with
+            data["dtype"] = self.dtype
         return data
 
     @classmethod
@@ -196,9 +207,10 @@ class TrainingData:
     system : SystemConfig
     manifest : dict
     views, demixed : numpy.memmap
-        ``(count, 9, S, S)`` float32: noiseless sub-views and demixing targets.
+        ``(count, 9, S, S)``: noiseless sub-views and demixing targets, in the recipe's
+        storage type (read them through :meth:`read`).
     objects : numpy.memmap
-        ``(count, S, S)`` float32 ground truth.
+        ``(count, S, S)`` ground truth.
     train_frames, val_frames : list of int
     """
 
@@ -250,6 +262,11 @@ class TrainingData:
         sensor = sensor_model(self.system.noise, departures, (1, 1))
         return SensorModel(sensor.noise, adc_bits=sensor.adc_bits)
 
+    @staticmethod
+    def read(array: np.ndarray) -> torch.Tensor:
+        """A (sliced) stored array as a float32 tensor of its own."""
+        return torch.from_numpy(np.array(array, dtype=np.float32))
+
     def __len__(self) -> int:
         return len(self.views)
 
@@ -277,18 +294,19 @@ def _open_array(path: Path, count: int) -> np.ndarray:
     return array
 
 
-def _open_arrays(path: Path, shapes: dict[str, tuple[int, ...]], create: bool) -> dict:
+def _open_arrays(path: Path, shapes: dict[str, tuple[int, ...]], create: bool,
+                 dtype: str = "float32") -> dict:  # fmt: skip
     """The dataset's arrays, memory-mapped; new ones are created with their disk space
     reserved (a full disk is refused at the start, not met as a SIGBUS halfway)."""
     mode = "w+" if create else "r+"
     arrays = {}
     for name, shape in shapes.items():
         array = np.lib.format.open_memmap(
-            path / f"{name}.npy", mode=mode, dtype=np.float32, shape=shape if create else None
+            path / f"{name}.npy", mode=mode, dtype=dtype, shape=shape if create else None
         )
-        if array.shape != shape or array.dtype != np.float32:
+        if array.shape != shape or array.dtype != np.dtype(dtype):
             raise ValueError(f"{path / f'{name}.npy'} has shape {array.shape} {array.dtype}, "
-                             f"expected {shape} float32")
+                             f"expected {shape} {dtype}")
         if create:
             preallocate(path / f"{name}.npy")
         arrays[name] = array
@@ -335,8 +353,10 @@ def generate_dataset(
         "demixed": (recipe.frames, N_LENSES, size, size),
         "objects": (recipe.frames, size, size),
     }
+    itemsize = np.dtype(recipe.dtype).itemsize
     if not manifest_path.is_file():
-        require_space({out: sum(4 * int(np.prod(shape)) + 4096 for shape in shapes.values())})
+        require_space({out: sum(itemsize * int(np.prod(shape)) + 4096
+                                for shape in shapes.values())})
     out.mkdir(parents=True, exist_ok=True)
     if manifest_path.is_file():
         manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
@@ -346,11 +366,11 @@ def generate_dataset(
                 f"{out} already holds a dataset of another system or recipe "
                 f"({stored_system.name}, {manifest.get('recipe')}); choose a new folder"
             )
-        arrays = _open_arrays(out, shapes, create=False)
+        arrays = _open_arrays(out, shapes, create=False, dtype=recipe.dtype)
     else:
         train, val = split_frames(recipe.frames, recipe.val_fraction, recipe.seed)
         system.save(out / SYSTEM)
-        arrays = _open_arrays(out, shapes, create=True)
+        arrays = _open_arrays(out, shapes, create=True, dtype=recipe.dtype)
         manifest = {
             "format": DATA_FORMAT,
             "system": system.name,
@@ -360,7 +380,7 @@ def generate_dataset(
             "departures": (None if recipe.departures is None else
                            "frame i: frame_departures(recipe, i); views hold the expected "
                            "reading of that instrument"),  # fmt: skip
-            "dtype": "float32",
+            "dtype": recipe.dtype,
             "shapes": {name: list(shape) for name, shape in shapes.items()},
             "train_frames": train,
             "val_frames": val,

@@ -130,7 +130,7 @@ class _NoisySamples(torch.utils.data.Dataset):
         if not self.normalise_exposure:
             return 1.0
         if frame not in self._gains:
-            views = torch.from_numpy(np.array(self.data.views[frame]))
+            views = self.data.read(self.data.views[frame])
             sensor = crop_to_sensor(assemble_frame(views, self.system), self.system)
             self._gains[frame] = exposure_gain(sensor.numpy())
         return self._gains[frame]
@@ -150,7 +150,7 @@ class _NoisySamples(torch.utils.data.Dataset):
         (:func:`~svcode_core.physics.geometry.assemble_frame`), with the sensor model
         applied to the sensor window only, as :class:`~svcode_core.physics.simulate.Simulator`
         does (unless ``noise`` is off)."""
-        padded = assemble_frame(torch.from_numpy(np.array(self.data.views[frame])), self.system)
+        padded = assemble_frame(self.data.read(self.data.views[frame]), self.system)
         if not self.noise:
             return padded
         sensor = crop_to_sensor(padded, self.system)
@@ -234,16 +234,16 @@ class PatchDataset(_NoisySamples):
             views = context_views(padded, self.system, (int(r), int(c)), self.patch,
                                   self.context_reach)
         else:
-            views = torch.from_numpy(np.array(self.data.views[frame][(slice(None), *crop)]))
+            views = self.data.read(self.data.views[frame][(slice(None), *crop)])
             if self.noise:
                 inside = torch.from_numpy(self.sensor_mask[(slice(None), *crop)])
                 views = self.sensor(frame, generator).read(views, generator) * inside
         gain = self.gain(frame)
-        demixed = torch.from_numpy(np.array(self.data.demixed[frame][(slice(None), *crop)]))
+        demixed = self.data.read(self.data.demixed[frame][(slice(None), *crop)])
         return {
             "views": views * gain,
             "demixed": demixed * gain,
-            "object": torch.from_numpy(np.array(self.data.objects[frame][crop]))[None] * gain,
+            "object": self.data.read(self.data.objects[frame][crop])[None] * gain,
             "origin": torch.tensor([r, c], dtype=torch.int64),
             "gain": torch.tensor(gain, dtype=torch.float32),
             "index": index,
@@ -277,7 +277,7 @@ class FrameDataset(_NoisySamples):
         gain = self.gain(frame)
         return {
             "frame": self.padded_frame(frame, generator) * gain,
-            "object": torch.from_numpy(np.array(self.data.objects[frame]))[None] * gain,
+            "object": self.data.read(self.data.objects[frame])[None] * gain,
             "gain": torch.tensor(gain, dtype=torch.float32),
             "index": index,
         }

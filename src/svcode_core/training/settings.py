@@ -14,10 +14,13 @@ from typing import Any
 
 from ..config import ConfigError, check_int, check_number
 
-__all__ = ["ABLATIONS", "TRAIN_PRECISIONS", "TrainConfig"]
+__all__ = ["ABLATIONS", "STORE_DTYPES", "TRAIN_PRECISIONS", "TrainConfig"]
 
 #: training precisions: ``auto`` is bf16 autocast on CUDA and float32 elsewhere
 TRAIN_PRECISIONS = ("auto", "fp32", "bf16")
+
+#: how a dataset may store its arrays (``svcode dataset --dtype``; read as float32)
+STORE_DTYPES = ("float32", "float16")
 
 #: SV-CoDe ablations: name → the :class:`~svcode_core.network.ModelConfig` fields they change
 ABLATIONS = {
