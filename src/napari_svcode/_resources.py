@@ -23,7 +23,7 @@ def simulator(system: SystemConfig, departures: str = "none") -> Simulator:
     (:data:`~svcode_core.physics.departures.NAMED_SETS`); PSFs built once."""
     if departures == "none":
         return Simulator(system)
-    return simulator(system).with_departures(departures)
+    return simulator(system, "none").with_departures(departures)  # the nominal one's PSFs
 
 
 NO_BUNDLED_MODEL = (
