@@ -426,6 +426,26 @@ def test_resume_continues_exactly(tiny_data, tmp_path, monkeypatch):
         _trainer(tiny_data, tmp_path / "c").fit(resume=True)
 
 
+def test_a_resume_writes_back_best_weights_left_out_of_a_kept_state(tiny_data, tmp_path):
+    """A resume state kept without best.safetensors (its best epoch is the checkpoint's:
+    ``snapshot.sh RUN DEST running``) gets it back on resuming, the same weights and
+    metadata; nothing else is written when no epoch is left to train."""
+    from safetensors import safe_open
+
+    run = tmp_path / "run"
+    _trainer(tiny_data, run, epochs=1).fit()
+    best = run / "best.safetensors"
+    with safe_open(str(best), "pt") as kept:
+        tensors = {name: kept.get_tensor(name) for name in kept.keys()}
+        metadata = kept.metadata()
+    best.unlink()
+    assert _trainer(tiny_data, run, epochs=1).fit(resume=True)[-1]["epoch"] == 1
+    with safe_open(str(best), "pt") as again:
+        assert again.metadata() == metadata
+        for name, value in tensors.items():
+            assert torch.equal(again.get_tensor(name), value), name
+
+
 def test_resume_from_a_checkpoint_older_than_a_config_field(tiny_data, tmp_path):
     """A field added after a checkpoint was written compares at its default."""
     run = tmp_path / "run"

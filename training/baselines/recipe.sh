@@ -10,7 +10,7 @@
 #   fouriernet    SV-FourierNet
 # Usage (from the repository root): bash training/baselines/recipe.sh ARCH
 # then, to keep the state in the repository: bash training/cm2-mini-v2/snapshot.sh
-# runs/baseline-ARCH training/baselines/ARCH
+# runs/baseline-ARCH training/baselines/ARCH running
 set -euo pipefail
 arch="${1:-}"
 case "$arch" in

@@ -14,7 +14,9 @@ A run folder holds
   and ``latest.json`` is replaced last, so an interruption at any moment leaves the
   previous complete checkpoint in charge;
 * ``best.safetensors``: the model with the best validation reconstruction PSNR, with the
-  system and the training metadata (:func:`~svcode_core.network.save_model`);
+  system and the training metadata (:func:`~svcode_core.network.save_model`); when the
+  best epoch is the latest checkpoint's, a resume writes it again from that checkpoint
+  if it is missing (a resume state kept in a repository need not hold the weights twice);
 * ``log.csv`` and ``log.json`` (per-epoch metrics; the JSON also has the configurations
   and every step's loss) and ``loss.png`` (the curves).
 
@@ -371,6 +373,9 @@ class Trainer:
         barrier(self.dist)
         if resume:
             self.load_checkpoint()
+            best_is_latest = self.best.get("epoch") == self.epoch
+            if self.dist.is_main and best_is_latest and not (self.out / BEST).is_file():
+                self._save_best()  # a kept resume state leaves out the checkpoint's own weights
         for epoch in range(self.epoch, self.config.epochs):
             start, cpu_start = time.perf_counter(), time.process_time()
             record: dict[str, float] = {"epoch": epoch + 1}
