@@ -12,6 +12,7 @@ from test_cm2 import gaussian_psfs
 
 from svcode_core.config import ConfigError, SystemConfig
 from svcode_core.evaluation.metrics import field_zones
+from svcode_core.methods.learned.config import MultiWienerConfig
 from svcode_core.methods.model_file import load_model
 from svcode_core.network import ModelConfig
 from svcode_core.physics.cm2 import CM2Operator
@@ -220,6 +221,48 @@ def test_lens_context_patches_share_one_noise_draw(tiny_data):
         # apart): the noise is drawn on the sensor, so both crops carry the same draw
         assert torch.equal(draw[9 * 0 + 5], draw[9 * 1 + 0])
         assert off_sensor.any() and torch.all(draw[off_sensor] == 0)  # padding: no noise
+
+
+def test_window_crops_are_the_whole_frames_crops(tiny_data):
+    # the crops a patch needs are cut from windows of the frame, each read and drawn on
+    # its own: noiseless they are the whole frame's crops bit for bit (the same sums in
+    # the same order), also where crops overlap (one window) or leave the frame
+    clean = PatchDataset(tiny_data, tiny_data.train_frames, noise=False, lens_context=True)
+    noisy = PatchDataset(tiny_data, tiny_data.train_frames, seed=1, lens_context=True)
+    system, p = tiny_data.system, tiny_data.system.patch_size
+    frame = tiny_data.train_frames[0]
+    whole = clean.padded_frame(frame, torch.Generator())
+    rows, cols = system.padded_shape
+    corners = np.array([[0, 0], [3, 5], [-7, 2], [rows - 4, cols - p // 2], [rows + 1, 0],
+                        [rows // 2, cols // 2]])  # fmt: skip
+    crops = clean.window_crops(frame, corners, p, torch.Generator())
+    assert torch.equal(crops, _crops_of(whole, corners, p))
+    draw = noisy.window_crops(frame, corners, p, torch.Generator().manual_seed(3))
+    # crops 0 and 1 overlap by (p - 3) x (p - 5) pixels: one draw there
+    assert torch.equal(draw[0, 3:, 5:], draw[1, : p - 3, : p - 5])
+    window = torch.zeros(system.padded_shape)
+    window[system.sensor_window] = 1
+    off_sensor = _crops_of(window, corners, p) == 0
+    assert off_sensor.any() and torch.all(draw[off_sensor] == 0)  # padding and beyond: 0
+    assert torch.all(draw[4] == 0)  # wholly below the frame
+    # one window over the whole frame is the whole frame's draw, bit for bit: the same
+    # pixels read by the same camera from the same random stream
+    side = max(rows, cols)
+    whole_window = noisy.window_crops(frame, np.zeros((1, 2), int), side,
+                                      torch.Generator().manual_seed(4))[0]  # fmt: skip
+    drawn = noisy.padded_frame(frame, torch.Generator().manual_seed(4))
+    assert torch.equal(whole_window[:rows, :cols], drawn)
+
+
+def _crops_of(frame, corners, size):
+    """Crops of a padded frame at ``corners``, zero outside it: the reference."""
+    out = torch.zeros(len(corners), size, size)
+    for k, (r, c) in enumerate(corners):
+        r0, c0 = max(r, 0), max(c, 0)
+        r1, c1 = min(r + size, frame.shape[0]), min(c + size, frame.shape[1])
+        if r0 < r1 and c0 < c1:
+            out[k, r0 - r : r1 - r, c0 - c : c1 - c] = frame[r0:r1, c0:c1]
+    return out
 
 
 def test_epoch_sampler_is_seeded_and_splits_ranks():
@@ -468,6 +511,18 @@ def test_resume_from_a_checkpoint_older_than_a_config_field(tiny_data, tmp_path)
 def test_too_few_patches_for_a_batch(tiny_data, tmp_path):
     with pytest.raises(ValueError, match="make no batch"):
         _trainer(tiny_data, tmp_path, patches_per_epoch=1, batch_size=2)
+
+
+def test_patch_size_sets_the_training_patches(tiny_data, tmp_path):
+    p = tiny_data.system.patch_size - 4
+    trainer = _trainer(tiny_data, tmp_path, patch_size=p, batch_size=2)
+    for samples in (trainer.train_set, trainer.val_set):
+        starts = sorted({int(r) for r, _ in samples.origins})
+        assert starts[1] - starts[0] == p // 2 and samples[0]["views"].shape[-1] == p
+    trainer.train_step(trainer.task.collate([trainer.train_set[i] for i in (0, 1)]))
+    with pytest.raises(ValueError, match="patch_size: MultiWienerNet trains on whole frames"):
+        Trainer(tiny_data, tmp_path / "mwn", MultiWienerConfig(),
+                TrainConfig(patch_size=p), progress=False)  # fmt: skip
 
 
 def test_learning_rate_warms_up_then_anneals(tiny_data, tmp_path):

@@ -99,6 +99,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--compile", action="store_true",
                         help="compile the training step with torch.compile (needs a C++ "
                         "compiler on the CPU; minutes at the first step, then faster steps)")
+    parser.add_argument("--patch-size", type=int, metavar="P",
+                        help="SV-CoDe: side of the training and validation patches, cut at "
+                        "stride P/2 (default: the system's patch size)")
     parser.add_argument("--patches-per-epoch", type=int,
                         help="training patches drawn per epoch (default: all)")
     parser.add_argument("--val-patches", type=int,
@@ -127,7 +130,7 @@ _OPTION_OF_FIELD = {"alpha": "--ssim-weight", "beta": "--mse-weight"} | {
     field: "--" + field.replace("_", "-")
     for field in ("epochs", "batch_size", "lr", "min_lr_ratio", "warmup_steps", "grad_clip",
                   "edge_weight", "ring_weight", "patches_per_epoch", "val_patches", "seed",
-                  "same_origin", "photon_range")
+                  "same_origin", "photon_range", "patch_size")
 } | {"workers": "--loader-workers"}  # fmt: skip
 
 
@@ -176,7 +179,7 @@ def run(args: argparse.Namespace) -> int:
         patches_per_epoch=args.patches_per_epoch, val_patches=args.val_patches,
         seed=args.seed, workers=args.loader_workers, same_origin=args.same_origin,
         photon_range=tuple(args.photon_range), normalise_exposure=args.normalise_exposure,
-        precision=args.precision, compile=args.compile,
+        precision=args.precision, compile=args.compile, patch_size=args.patch_size,
     )
     with in_option_words(_OPTION_OF_FIELD):
         config.validate()

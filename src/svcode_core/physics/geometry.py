@@ -16,6 +16,7 @@ from ..config import N_LENSES, SystemConfig
 __all__ = [
     "CONTEXT_SHIFTS",
     "assemble_frame",
+    "context_corners",
     "context_shifts",
     "context_views",
     "crop_to_sensor",
@@ -223,10 +224,24 @@ def context_views(
         ``context_shifts(reach)[j]`` pitches; zero outside the padded frame.
     """
     _check_frame(frame, config.padded_shape, "padded sensor frame")
-    pitch = np.asarray(lens_pitch(config))
-    shifts = np.asarray(context_shifts(reach)) * pitch
-    corners = (sub_view_origins(config)[:, None] + np.asarray(origin) + shifts).reshape(-1, 2)
+    corners = context_corners(config, origin, reach)
     return _crops(frame, corners, config.sub_view_size if size is None else size)
+
+
+def context_corners(
+    config: SystemConfig, origin: tuple[int, int] = (0, 0), reach: int = 1
+) -> np.ndarray:
+    """Top-left padded-frame pixels ``(9 k, 2)`` of the crops :func:`context_views` cuts,
+    in its channel order (``k = len(context_shifts(reach))``).
+
+    Examples
+    --------
+    >>> corners = context_corners(SystemConfig.preset("cm2-mini"), (10, 20))
+    >>> corners[0].tolist(), corners[5].tolist()  # lens 0 itself, and moved one pitch right
+    ([10, 20], [10, 164])
+    """
+    shifts = np.asarray(context_shifts(reach)) * np.asarray(lens_pitch(config))
+    return (sub_view_origins(config)[:, None] + np.asarray(origin) + shifts).reshape(-1, 2)
 
 
 def place_sub_views(views: torch.Tensor, config: SystemConfig, margin: int = 0) -> torch.Tensor:

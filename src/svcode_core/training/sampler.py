@@ -30,10 +30,11 @@ from ..methods.exposure import exposure_gain
 from ..methods.tiling import TileGrid
 from ..physics.geometry import (
     assemble_frame,
-    context_views,
+    context_corners,
     crop_to_sensor,
     pad_sensor_frame,
     sensor_coverage,
+    sub_view_origins,
 )
 from ..physics.noise import SensorModel
 from .dataset import TrainingData
@@ -157,6 +158,89 @@ class _NoisySamples(torch.utils.data.Dataset):
         sensor = self.sensor(frame, generator).read(sensor, generator)
         return pad_sensor_frame(sensor, self.system)
 
+    def window_crops(
+        self, frame: int, corners: np.ndarray, size: int, generator: torch.Generator
+    ) -> torch.Tensor:
+        """The ``size``-square crops at padded-frame ``corners`` ``(n, 2)`` of frame
+        ``frame``'s noisy padded frame, ``(n, size, size)``: what cropping
+        :meth:`padded_frame` gives, drawn on the crops' own pixels only (overlapping crops
+        merged into one window, so a sensor pixel gets one draw). At paper scale a patch's
+        81 crops cover a twentieth of the frame."""
+        windows = _merged_windows(corners, size, self.system.padded_shape)
+        sensor = self.sensor(frame, generator) if self.noise else None
+        rows, cols = self.system.sensor_window
+        crops = torch.zeros(len(corners), size, size)
+        for (top, left, bottom, right), members in windows:
+            values = self._assemble(frame, top, left, bottom, right)
+            if sensor is not None:  # the sensor's pixels in the window: read; the rest stays 0
+                r0, r1 = max(top, rows.start), min(bottom, rows.stop)
+                c0, c1 = max(left, cols.start), min(right, cols.stop)
+                read = torch.zeros_like(values)
+                if r0 < r1 and c0 < c1:
+                    inside = (slice(r0 - top, r1 - top), slice(c0 - left, c1 - left))
+                    read[inside] = sensor.read(values[inside], generator)
+                values = read
+            for index in members:
+                _paste(crops[index], values, int(corners[index][0]) - top,
+                       int(corners[index][1]) - left)  # fmt: skip
+        return crops
+
+    def _assemble(self, frame: int, top: int, left: int, bottom: int, right: int) -> torch.Tensor:
+        """:func:`~svcode_core.physics.geometry.assemble_frame` of frame ``frame`` on the
+        padded-frame window ``[top, bottom) × [left, right)``, reading only its pixels."""
+        total = torch.zeros(bottom - top, right - left)
+        count = torch.zeros(bottom - top, right - left)
+        size = self.system.sub_view_size
+        for lens, (r0, c0) in enumerate(sub_view_origins(self.system)):
+            a, b = max(top, r0), min(bottom, r0 + size)
+            c, d = max(left, c0), min(right, c0 + size)
+            if a < b and c < d:
+                view = self.data.views[frame][lens, a - r0 : b - r0, c - c0 : d - c0]
+                total[a - top : b - top, c - left : d - left] += self.data.read(view)
+                count[a - top : b - top, c - left : d - left] += 1
+        return total / count.clamp(min=1)
+
+
+def _merged_windows(
+    corners: np.ndarray, size: int, shape: tuple[int, int]
+) -> list[tuple[tuple[int, int, int, int], list[int]]]:
+    """Disjoint windows ``(top, left, bottom, right)`` inside a frame of ``shape``, each
+    with the indices of the ``size``-square crops at ``corners`` that it holds (the parts
+    of them inside the frame): overlapping crops share one window."""
+    groups = [((int(r), int(c), int(r) + size, int(c) + size), [k])
+              for k, (r, c) in enumerate(corners)]  # fmt: skip
+    merged = True
+    while merged:
+        merged, out = False, []
+        for box, members in groups:
+            for k, (other, together) in enumerate(out):
+                if (box[0] < other[2] and other[0] < box[2]
+                        and box[1] < other[3] and other[1] < box[3]):  # fmt: skip
+                    joined = (min(box[0], other[0]), min(box[1], other[1]),
+                              max(box[2], other[2]), max(box[3], other[3]))  # fmt: skip
+                    out[k], merged = (joined, together + members), True
+                    break
+            else:
+                out.append((box, members))
+        groups = out
+    rows, cols = shape
+    windows = []
+    for (top, left, bottom, right), members in groups:
+        box = (max(top, 0), max(left, 0), min(bottom, rows), min(right, cols))
+        if box[0] < box[2] and box[1] < box[3]:
+            windows.append((box, members))
+    return windows
+
+
+def _paste(crop: torch.Tensor, values: torch.Tensor, row: int, col: int) -> None:
+    """Copy ``values`` into ``crop`` with its top-left at ``(row, col)`` of ``values``
+    (the parts of ``crop`` outside ``values`` are left as they are)."""
+    r0, c0 = max(row, 0), max(col, 0)
+    r1 = min(row + crop.shape[0], values.shape[0])
+    c1 = min(col + crop.shape[1], values.shape[1])
+    if r0 < r1 and c0 < c1:
+        crop[r0 - row : r1 - row, c0 - col : c1 - col] = values[r0:r1, c0:c1]
+
 
 class PatchDataset(_NoisySamples):
     """All patches of some frames of a :class:`TrainingData`, with noise drawn on access.
@@ -177,12 +261,16 @@ class PatchDataset(_NoisySamples):
         ``views`` holds each lens's crop and the crops one lens pitch away, ``(81, P, P)``
         (:func:`~svcode_core.physics.geometry.context_views`), for a model with
         :attr:`~svcode_core.network.ModelConfig.lens_context`. These crops share sensor
-        pixels, so the noise is drawn once on the whole sensor frame.
+        pixels, so the noise is drawn once per sensor pixel, on the windows of the frame
+        that the crops cover (:meth:`window_crops`).
     context_reach : int
         With ``lens_context``, how many pitches left and right the crops go
         (:attr:`~svcode_core.network.ModelConfig.context_reach`; ``(99, P, P)`` at 2).
     photon_range, normalise_exposure
         Dimmer draws and one exposure level (see ``_NoisySamples``).
+    patch : int, optional
+        Patch side ``P``, on a grid of stride ``P // 2``; default the system's
+        ``patch_size`` and ``patch_stride``.
 
     Notes
     -----
@@ -204,13 +292,16 @@ class PatchDataset(_NoisySamples):
         context_reach: int = 1,
         photon_range: tuple[float, float] = (1.0, 1.0),
         normalise_exposure: bool = False,
+        patch: int | None = None,
     ) -> None:
         super().__init__(data, frames, fixed_noise, seed, noise, photon_range,
                          normalise_exposure)
         system = data.system
-        self.patch, self.lens_context = system.patch_size, lens_context
-        self.context_reach = context_reach
-        self.origins = TileGrid(system.sub_view_size, self.patch, system.patch_stride).origins
+        self.patch, stride = system.patch_size, system.patch_stride
+        if patch is not None:
+            self.patch, stride = patch, max(patch // 2, 1)
+        self.lens_context, self.context_reach = lens_context, context_reach
+        self.origins = TileGrid(system.sub_view_size, self.patch, stride).origins
         if not lens_context:  # noise per view crop: needs crops without shared pixels
             check_disjoint_view_patches(system, self.patch)
             self.sensor_mask = sensor_coverage(system).numpy().astype(bool)
@@ -230,9 +321,8 @@ class PatchDataset(_NoisySamples):
         frame, (r, c) = self.locate(index)
         crop = (slice(r, r + self.patch), slice(c, c + self.patch))
         if self.lens_context:
-            padded = self.padded_frame(frame, generator)
-            views = context_views(padded, self.system, (int(r), int(c)), self.patch,
-                                  self.context_reach)
+            corners = context_corners(self.system, (int(r), int(c)), self.context_reach)
+            views = self.window_crops(frame, corners, self.patch, generator)
         else:
             views = self.data.read(self.data.views[frame][(slice(None), *crop)])
             if self.noise:

@@ -89,6 +89,10 @@ class TrainConfig:
     compile : bool
         Run the training steps through :func:`torch.compile` (needs a C++ compiler on the
         CPU; the first step compiles for minutes, validation runs uncompiled).
+    patch_size : int or None
+        SV-CoDe's training and validation patch side, on a grid of half that stride;
+        ``None``: the system's ``patch_size`` and ``patch_stride``. Not for the learned
+        baselines, which train on whole frames.
 
     Examples
     --------
@@ -115,6 +119,7 @@ class TrainConfig:
     normalise_exposure: bool = False
     precision: str = "auto"
     compile: bool = False
+    patch_size: int | None = None
 
     def validate(self) -> TrainConfig:
         """Raise ``ValueError`` (:class:`~svcode_core.config.ConfigError`) naming the first
@@ -124,6 +129,8 @@ class TrainConfig:
         for name in ("patches_per_epoch", "val_patches"):
             if getattr(self, name) is not None:
                 check_int(name, getattr(self, name), 1)
+        if self.patch_size is not None:
+            check_int("patch_size", self.patch_size, 11)  # the SSIM window
         for name in ("lr", "grad_clip"):
             check_number(name, getattr(self, name), 0, strict=True)
         for name in ("warmup_steps", "seed", "workers"):

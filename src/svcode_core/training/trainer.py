@@ -187,6 +187,11 @@ class Trainer:
 
         self.task = training_task(self.model_config)
         self.stages = self.task.stages
+        sampling: dict[str, Any] = {"normalise_exposure": config.normalise_exposure}
+        if config.patch_size is not None:
+            if self.task.unit != "patches":
+                raise ValueError(f"patch_size: {self.task.label} trains on whole frames")
+            sampling["patch"] = config.patch_size
         torch.manual_seed(derive_seed(config.seed, 4))
         self.model = self.task.build(self.system)
         if init_weights is not None:
@@ -205,7 +210,7 @@ class Trainer:
 
         self.train_set = self.task.dataset(data, data.train_frames, False, config.seed,
                                            photon_range=tuple(config.photon_range),
-                                           normalise_exposure=config.normalise_exposure)
+                                           **sampling)  # fmt: skip
         per_epoch = config.patches_per_epoch or len(self.train_set)
         origins = self.task.origins(self.train_set)
         group = config.same_origin if origins > 1 else 1  # whole frames: nothing to share
@@ -217,8 +222,7 @@ class Trainer:
                 f"{len(self.sampler)} patches per process and epoch make no batch of "
                 f"{config.batch_size}: raise patches_per_epoch or lower batch_size"
             )
-        self.val_set = self.task.dataset(data, data.val_frames, True, config.seed,
-                                         normalise_exposure=config.normalise_exposure)
+        self.val_set = self.task.dataset(data, data.val_frames, True, config.seed, **sampling)
         val_indices = np.arange(len(self.val_set))
         if config.val_patches is not None and config.val_patches < len(val_indices):
             rng = np.random.default_rng(derive_seed(config.seed, 5))
