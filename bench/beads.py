@@ -14,17 +14,20 @@ LSV-ADMM (``K`` = 3, 50 iterations, λ from the frame) and Wiener (the registry'
 defaults); the phantom itself is scored too (the detector's ceiling).
 
 Run: ``OMP_NUM_THREADS=1 python bench/beads.py`` (about 8 minutes on one thread with three
-seeds; LSV-ADMM is the slow part, ``--no-admm`` skips it).
+seeds; LSV-ADMM is the slow part, ``--no-admm`` skips it). ``--learned FILE ...`` adds a
+trained MultiWienerNet or SV-FourierNet (``--only-learned --merge``: only those, the other
+rows kept from the earlier report).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from pathlib import Path
 
 import numpy as np
-from probes import ADMM_AUTO, admm_auto, realistic_simulator, write_report
+from probes import ADMM_AUTO, admm_auto, learned_methods, realistic_simulator, write_report
 
 from svcode_bench.beads import BEAD_SIGMA, BeadScore, bead_phantom, score_beads
 from svcode_core.config import SystemConfig
@@ -36,24 +39,39 @@ DENSITIES = (1.0, 3.0, 10.0, 20.0, 40.0, 80.0)
 TRUTH = "truth (the phantom)"
 
 
-def methods(system: SystemConfig, admm: bool) -> dict:
-    found = {"SV-CoDe (bundled)": build_reconstructor("svcode", system)}
-    if admm:
-        found[ADMM_AUTO] = admm_auto(system)
-    found["Wiener"] = build_reconstructor("wiener", system)
-    return found
+def methods(system: SystemConfig, admm: bool, learned: list[Path], others: bool) -> dict:
+    """Label → reconstruction of a raw frame: the bundled SV-CoDe, LSV-ADMM and Wiener
+    (unless ``others`` is off), and a trained baseline per file of ``learned``."""
+    found = {}
+    if others:
+        found["SV-CoDe (bundled)"] = _run(build_reconstructor("svcode", system))
+        if admm:
+            found[ADMM_AUTO] = _run(admm_auto(system))
+        found["Wiener"] = _run(build_reconstructor("wiener", system))
+    return found | dict(learned_methods(system, learned))
+
+
+def _run(reconstructor):
+    return lambda raw: reconstructor.reconstruct(raw).reconstruction
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seeds", type=int, default=3, help="fields per density (default 3)")
     parser.add_argument("--no-admm", action="store_true", help="skip LSV-ADMM")
+    parser.add_argument("--learned", type=Path, nargs="*", default=[],
+                        help="trained MultiWienerNet / SV-FourierNet model files")
+    parser.add_argument("--only-learned", action="store_true",
+                        help="run only the --learned rows (with --merge: keep the others)")
     parser.add_argument("--out", type=Path, default=RESULTS / "beads",
                         help="output stem (.json and .md; default bench/results/beads)")
+    parser.add_argument("--merge", action="store_true",
+                        help="keep the rows of an earlier report at --out that this run does "
+                        "not replace (same method)")
     args = parser.parse_args()
     system = SystemConfig.preset("cm2-mini")
     simulator = realistic_simulator(system)
-    reconstructors = methods(system, not args.no_admm)
+    reconstructors = methods(system, not args.no_admm, args.learned, not args.only_learned)
     labels = [TRUTH, *reconstructors]
     scores = {label: {d: [] for d in DENSITIES} for label in labels}
     seconds = {label: {d: [] for d in DENSITIES} for label in labels}
@@ -63,9 +81,9 @@ def main() -> None:
             frame = simulator.simulate(field.image, seed=700 + 10 * index + seed)
             frame = frame.measurement.astype(np.float32)
             images = {TRUTH: field.image}
-            for label, reconstructor in reconstructors.items():
+            for label, reconstruct in reconstructors.items():
                 begin = time.perf_counter()
-                images[label] = reconstructor.reconstruct(frame).reconstruction
+                images[label] = reconstruct(frame)
                 seconds[label][density].append(time.perf_counter() - begin)
             for label, image in images.items():
                 scores[label][density].append(score_beads(image, field))
@@ -82,6 +100,12 @@ def main() -> None:
                 "f1_per_seed": [s.f1 for s in scores[label][density]],
                 "seconds": float(np.mean(seconds[label][density]))
                 if seconds[label][density] else None})
+    earlier = args.out.with_suffix(".json")
+    if args.merge and earlier.exists():
+        done = {row["method"] for row in rows}
+        kept = [row for row in json.loads(earlier.read_text())["rows"] if row["method"] not in done]
+        rows = [row for row in rows if row["method"] == TRUTH] + [
+            row for row in kept + rows if row["method"] != TRUTH]
     write_report(rows, args.out, write_markdown)
 
 

@@ -41,6 +41,21 @@ def svcode_methods(system: SystemConfig, weights: list[Path], knob: str = "",
     return methods
 
 
+def learned_methods(system: SystemConfig, weights: list[Path]) -> list[tuple[str, Reconstruct]]:
+    """A trained MultiWienerNet or SV-FourierNet per file of ``weights``, labelled by its
+    family and file."""
+    from svcode_core.methods import registry
+    from svcode_core.methods.model_file import read_model_metadata
+
+    methods = []
+    for path in weights:
+        method = registry.method_of_architecture(read_model_metadata(path)["architecture"])
+        reconstructor = build_reconstructor(method, system, path)
+        methods.append((f"{registry.method(method).label}: {_shown(path)}",
+                        lambda raw, r=reconstructor: r.reconstruct(raw).reconstruction))
+    return methods
+
+
 def _shown(path: Path) -> str:
     """``path`` relative to the working directory when inside it, else as given."""
     here, resolved = Path.cwd().resolve(), path.resolve()

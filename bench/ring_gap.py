@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from probes import Reconstruct, admm_method, svcode_methods, write_report
+from probes import Reconstruct, admm_method, learned_methods, svcode_methods, write_report
 
 from svcode_bench.field_position import (
     half_field_shifts,
@@ -132,6 +132,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--weights", type=Path, nargs="*", default=[],
                         help="further SV-CoDe model files (the bundled one always runs)")
+    parser.add_argument("--learned", type=Path, nargs="*", default=[],
+                        help="trained MultiWienerNet / SV-FourierNet model files")
+    parser.add_argument("--no-svcode", action="store_true",
+                        help="skip the SV-CoDe rows (with --merge: keep the earlier ones)")
     parser.add_argument("--regimes", nargs="+", default=["matched", "realistic"],
                         choices=list(REGIMES), help="default: matched realistic")
     parser.add_argument("--tile", type=int, default=None,
@@ -161,7 +165,8 @@ def main() -> None:
     if args.refine_periphery:
         options |= {"refine_periphery": args.refine_periphery}
         knob += f", refine {args.refine_periphery}"
-    methods = svcode_methods(system, args.weights, knob, **options)
+    methods = [] if args.no_svcode else svcode_methods(system, args.weights, knob, **options)
+    methods += learned_methods(system, args.learned)
     if not args.no_admm:
         methods.append(admm_method(system, args.admm_iterations))
     truths = {name: scene_object(kind, system.sub_view_size, index, params)
