@@ -514,6 +514,34 @@ def training_data_curves() -> dict[str, Any]:
     return curves
 
 
+def _one_validation_set() -> list[str]:
+    """What ``results/data_efficiency.json`` (every method scored on the baselines' 48
+    whole validation frames) says about the data each needs for the same PSNR."""
+    path = Path(__file__).parent / "results" / "data_efficiency.json"
+    if not path.is_file():
+        return ["* The learned baselines: not measured on SV-CoDe's validation set "
+                "(`python bench/data_efficiency.py`)."]
+    rows = json.loads(path.read_text())["rows"]
+    svcode = [r for r in rows if r["method"] == "SV-CoDe"]
+    lines = []
+    for method in dict.fromkeys(r["method"] for r in rows if r["method"] != "SV-CoDe"):
+        curve = [r for r in rows if r["method"] == method and r["pixels"] is not None]
+        if not curve:
+            continue
+        best = max(curve, key=lambda r: r["psnr"])
+        passed = [r for r in svcode if r["psnr"] > best["psnr"]]
+        fewest = min(passed, key=lambda r: r["pixels"]) if passed else None
+        said = (f"SV-CoDe was above it after {fewest['pixels'] / 1e8:.1f} × 10⁸ "
+                f"({fewest['point']}, {fewest['psnr']:.2f} dB; the earliest point kept), "
+                f"{fewest['pixels'] / best['pixels']:.2f} of its data" if fewest else
+                "SV-CoDe never reached it")  # fmt: skip
+        lines.append(f"* {method} on SV-CoDe's data, scored with it on the same 48 whole "
+                     f"validation frames (`bench/results/data_efficiency.md`): best "
+                     f"{best['psnr']:.2f} dB after {best['pixels'] / 1e8:.1f} × 10⁸ target "
+                     f"pixels; {said}.")
+    return lines
+
+
 def patches_to_reach(curve: dict[str, Any], psnr: float) -> int | None:
     """Training patches seen when the validation PSNR first reaches ``psnr`` (None: never)."""
     for seen, value in zip(curve["patches_seen"], curve["val_recon_psnr"], strict=True):
@@ -930,17 +958,7 @@ def markdown(report: dict[str, Any]) -> str:
                      f"96², validation on {curve['val_patches']} fixed patches): {said}; best "
                      f"{best:.2f} dB after {curve['patches_seen'][-1]} patches.")
     lines += [
-        "* MultiWienerNet and SV-FourierNet: no learning curve is in the repository "
-        "(`grep -ril 'multiwiener\\|fouriernet' training runs` finds none); "
-        "`docs/learned-baselines.md` quotes only each run's best epoch (22.83 dB and 26.06 dB "
-        "after 864 whole cm2-mini frames, 1.3 × 10⁸ target pixels) on another dataset "
-        "(`runs/data`, 160 frames) and validated on 16 whole frames, not on SV-CoDe's 128 "
-        "patches. So the data needed for the same PSNR **cannot be read** from the repository.",
-        "* What it needs: both baselines trained on SV-CoDe's dataset (`runs/data-v2`, 432 "
-        "training frames) with their per-epoch `log.csv`, and every method's checkpoints "
-        "scored on the same held-out whole frames (e.g. `svcode bench` on the 48 validation "
-        "frames), so the curves are PSNR against target pixels seen on one validation set. "
-        "At about 1–2 min per cm2-mini epoch per baseline on this CPU, tens of epochs each.",
+        *_one_validation_set(),
         "",
         "## Not measured",
         "",
