@@ -45,6 +45,24 @@ def test_reference_parameter_count():
     assert sum(p.numel() for p in SVCoDe(ModelConfig.mini()).parameters()) < total / 5
 
 
+def test_max_width_caps_the_levels_and_leaves_uncapped_models_as_they_were():
+    deep = ModelConfig.mini().replace(demix_enc_blocks=(1,) * 5, demix_dec_blocks=(1,) * 5)
+    widths = [d.out_channels for d in SVCoDe(deep).demix.unet.downs]
+    assert widths == [32, 64, 128, 256, 512]  # 16 · 2^k
+    capped = SVCoDe(deep.replace(max_width=64).validate())
+    assert [d.out_channels for d in capped.demix.unet.downs] == [32, 64, 64, 64, 64]
+    # each up-sampling gives the level below its own width back (4 w channels, shuffled)
+    assert [u[0].out_channels for u in capped.demix.unet.ups] == [64, 128, 256, 256, 256]
+    assert sum(p.numel() for p in capped.parameters()) < sum(
+        p.numel() for p in SVCoDe(deep).parameters()) / 4  # fmt: skip
+    demixed, recon = capped.eval()(torch.rand(1, 9, 40, 40), [[0, 0]], 384)
+    assert demixed.shape == (1, 9, 40, 40) and recon.shape == (1, 1, 40, 40)
+    # uncapped, 4 w_k = 2 w_(k+1): every weight keeps the shape it had before the option
+    assert [u[0].out_channels for u in SVCoDe(deep).demix.unet.ups] == [2 * w for w in widths]
+    with pytest.raises(ConfigError, match="max_width: 8 is below width 16"):
+        ModelConfig.mini().replace(max_width=8).validate()
+
+
 def test_config_json_round_trip_and_errors():
     config = ModelConfig.mini().replace(pe_scheme="paper", positional_encoding=False)
     assert ModelConfig.from_json(config.to_json()) == config

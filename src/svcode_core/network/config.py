@@ -76,7 +76,13 @@ class ModelConfig(BlockConfig):
     Attributes
     ----------
     width : int
-        Channels of the first U-Net level; level ``k`` has ``width · 2^k``.
+        Channels of the first U-Net level; level ``k`` has ``width · 2^k``, at most
+        :attr:`max_width`.
+    max_width : int
+        ``0``: no cap. ``C > 0``: no U-Net level has more than ``C`` channels, so extra
+        levels widen the receptive field (a paper-scale PSF is 4× the mini one in pixels)
+        without the parameters doubling each time. Model files written before this option
+        existed load with ``0``.
     view_width : int
         Channels per view in the view-dependent first block (``9 · view_width`` in all).
     demix_enc_blocks, demix_dec_blocks : tuple of int
@@ -157,6 +163,7 @@ class ModelConfig(BlockConfig):
     pool_window: int = 0
     lens_context: bool = False
     context_reach: int = 1
+    max_width: int = 0
 
     block_lists = ("demix_enc_blocks", "demix_dec_blocks", "recon_enc_blocks",
                    "recon_dec_blocks")  # fmt: skip
@@ -200,7 +207,8 @@ class ModelConfig(BlockConfig):
         """Check every field; raise :class:`~svcode_core.config.ConfigError` naming it."""
         for name in ("width", "view_width", "pe_bands", "mlp_hidden", "context_reach"):
             check_int(name, getattr(self, name), minimum=1)
-        for name in ("demix_middle_blocks", "recon_middle_blocks", "mask_spacing", "pool_window"):
+        for name in ("demix_middle_blocks", "recon_middle_blocks", "mask_spacing", "pool_window",
+                     "max_width"):
             check_int(name, getattr(self, name), minimum=0)
         for name in self.block_lists:
             value = getattr(self, name)
@@ -223,6 +231,8 @@ class ModelConfig(BlockConfig):
                      "lens_context"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"{name}: must be true or false, got {getattr(self, name)!r}")
+        if 0 < self.max_width < self.width:
+            raise ConfigError(f"max_width: {self.max_width} is below width {self.width}")
         if self.context_reach != 1 and not self.lens_context:
             raise ConfigError(f"context_reach: {self.context_reach} needs lens_context")
         return self

@@ -164,8 +164,8 @@ def _blocks(count: int, channels: int, config: ModelConfig) -> nn.ModuleList:
 class UNet(nn.Module):
     """NAFNet-style encoder–decoder of CoDe blocks with additive skips.
 
-    Level ``k`` has ``width · 2^k`` channels; down-sampling is a 2×2 stride-2
-    convolution, up-sampling a 1×1 convolution and a pixel shuffle.
+    Level ``k`` has ``width · 2^k`` channels (at most ``max_width``); down-sampling is a
+    2×2 stride-2 convolution, up-sampling a 1×1 convolution and a pixel shuffle.
     """
 
     def __init__(self, config: ModelConfig, enc_blocks: Sequence[int], middle_blocks: int,
@@ -173,6 +173,8 @@ class UNet(nn.Module):
         super().__init__()
         self.levels = len(enc_blocks)
         widths = [config.width * 2**k for k in range(self.levels + 1)]
+        if config.max_width:
+            widths = [min(w, config.max_width) for w in widths]
         self.encoders = nn.ModuleList(
             _blocks(n, widths[k], config) for k, n in enumerate(enc_blocks)
         )
@@ -182,7 +184,7 @@ class UNet(nn.Module):
         self.middle = _blocks(middle_blocks, widths[-1], config)
         self.ups = nn.ModuleList(
             nn.Sequential(
-                nn.Conv2d(widths[k + 1], 2 * widths[k + 1], 1, bias=False), nn.PixelShuffle(2)
+                nn.Conv2d(widths[k + 1], 4 * widths[k], 1, bias=False), nn.PixelShuffle(2)
             )
             for k in range(self.levels)
         )
