@@ -31,12 +31,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from probes import write_report
+from probes import Reconstruct, learned_methods, write_report
 
 from svcode_core.config import SystemConfig
 from svcode_core.methods import registry
 from svcode_core.methods.build import build_reconstructor
-from svcode_core.methods.model_file import read_model_metadata
 from svcode_core.physics.geometry import crop_to_sensor
 from svcode_core.pretrained import require_bundled_weights
 from svcode_core.training import TrainingData
@@ -65,14 +64,19 @@ def validation_frames(data: TrainingData) -> list[tuple[np.ndarray, torch.Tensor
     return out
 
 
-def score(reconstructor, frames) -> tuple[float, float]:
+def score(reconstruct: Reconstruct, frames) -> tuple[float, float]:
     """Mean PSNR and SSIM over the frames, as the trainer's validation computes them."""
     psnr, ssim = [], []
     for raw, truth in frames:
-        estimate = torch.from_numpy(reconstructor.reconstruct(raw).reconstruction)[None, None]
+        estimate = torch.from_numpy(reconstruct(raw))[None, None]
         psnr.append(float(psnr_per_sample(estimate, truth[None])))
         ssim.append(float(ssim_per_sample(estimate, truth[None])))
     return float(np.mean(psnr)), float(np.mean(ssim))
+
+
+def _svcode(system: SystemConfig, path: Path) -> Reconstruct:
+    reconstructor = build_reconstructor("svcode", system, path)
+    return lambda raw: reconstructor.reconstruct(raw).reconstruction
 
 
 def baseline_log(path: Path) -> list[dict]:
@@ -100,12 +104,11 @@ def main() -> None:
             path = Path(folder) / f"epoch{epochs}.safetensors"
             path.write_bytes(subprocess.run(["git", "show", f"{commit}:{RUN}"], cwd=ROOT,
                                             check=True, capture_output=True).stdout)
-            psnr, ssim = score(build_reconstructor("svcode", system, path), frames)
+            psnr, ssim = score(_svcode(system, path), frames)
             rows.append({"method": "SV-CoDe", "point": f"first run, epoch {epochs}",
                          "pixels": epochs * PATCH_PIXELS, "psnr": psnr, "ssim": ssim})
             print(rows[-1], flush=True)
-    psnr, ssim = score(build_reconstructor("svcode", system,
-                                           require_bundled_weights(system)), frames)
+    psnr, ssim = score(_svcode(system, require_bundled_weights(system)), frames)
     rows.append({"method": "SV-CoDe", "point": "bundled model",
                  "pixels": BUNDLED_EPOCHS * PATCH_PIXELS, "psnr": psnr, "ssim": ssim})
     for arch in ("multiwiener", "fouriernet"):
@@ -115,12 +118,11 @@ def main() -> None:
             rows += [{"method": label, "point": f"epoch {r['epoch']} (its validation log)",
                       **{k: r[k] for k in ("pixels", "psnr", "ssim")}}
                      for r in baseline_log(log)]  # fmt: skip
-    for path in args.learned:
-        method = registry.method_of_architecture(read_model_metadata(path)["architecture"])
-        psnr, ssim = score(build_reconstructor(method, system, path), frames)
-        rows.append({"method": registry.method(method).label,
-                     "point": f"{path} (its best epoch), scored here", "pixels": None,
-                     "psnr": psnr, "ssim": ssim})  # fmt: skip
+    for label, reconstruct in learned_methods(system, args.learned):
+        method, path = label.split(": ", 1)
+        psnr, ssim = score(reconstruct, frames)
+        rows.append({"method": method, "point": f"{path} (its best epoch), scored here",
+                     "pixels": None, "psnr": psnr, "ssim": ssim})
     write_report(rows, args.out, write_markdown)
 
 

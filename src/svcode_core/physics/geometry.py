@@ -8,6 +8,8 @@ those of :mod:`svcode_core.config`: ``(row, col)`` order, normalised coordinates
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import torch
 
@@ -16,10 +18,12 @@ from ..config import N_LENSES, SystemConfig
 __all__ = [
     "CONTEXT_SHIFTS",
     "assemble_frame",
+    "assemble_window",
     "context_corners",
     "context_shifts",
     "context_views",
     "crop_to_sensor",
+    "crops_at",
     "extract_sub_views",
     "field_radius",
     "lens_pitch",
@@ -157,12 +161,12 @@ def extract_sub_views(frame: torch.Tensor, config: SystemConfig, margin: int = 0
         Shape ``(..., 9, S + 2·margin, S + 2·margin)``; view ``ℓ`` is centred on ``c_ℓ``.
     """
     _check_frame(frame, config.padded_shape, "padded sensor frame")
-    return _crops(frame, sub_view_origins(config) - margin, config.sub_view_size + 2 * margin)
+    return crops_at(frame, sub_view_origins(config) - margin, config.sub_view_size + 2 * margin)
 
 
-def _crops(frame: torch.Tensor, corners: np.ndarray, size: int) -> torch.Tensor:
-    """``size``-square crops of a padded frame at the top-left ``corners`` ``(n, 2)``,
-    zero where they leave the frame; shape ``(..., n, size, size)``."""
+def crops_at(frame: torch.Tensor, corners: np.ndarray, size: int) -> torch.Tensor:
+    """``size``-square crops of a frame ``(..., H, W)`` at the top-left ``corners``
+    ``(n, 2)``, zero where they leave the frame; shape ``(..., n, size, size)``."""
     rows, cols = frame.shape[-2:]
     crops = frame.new_zeros(*frame.shape[:-2], len(corners), size, size)
     for index, (r0, c0) in enumerate(corners):
@@ -225,7 +229,7 @@ def context_views(
     """
     _check_frame(frame, config.padded_shape, "padded sensor frame")
     corners = context_corners(config, origin, reach)
-    return _crops(frame, corners, config.sub_view_size if size is None else size)
+    return crops_at(frame, corners, config.sub_view_size if size is None else size)
 
 
 def context_corners(
@@ -297,6 +301,42 @@ def assemble_frame(views: torch.Tensor, config: SystemConfig) -> torch.Tensor:
     size = config.sub_view_size
     coverage = place_sub_views(views.new_ones(N_LENSES, size, size), config)
     return place_sub_views(views, config) / coverage.clamp(min=1)
+
+
+def assemble_window(
+    views: Any, config: SystemConfig, top: int, left: int, height: int, width: int
+) -> torch.Tensor:
+    """``assemble_frame(views, config)[top : top + height, left : left + width]`` for one
+    frame's views ``(9, S, S)``, reading only the views' pixels in that window (zero
+    outside the padded frame). ``views`` may be a memory-mapped array of any float type;
+    the result is float32, the same sums in the same order as :func:`assemble_frame`.
+
+    Examples
+    --------
+    >>> tiny = SystemConfig.tiny()
+    >>> views = torch.rand(N_LENSES, tiny.sub_view_size, tiny.sub_view_size)
+    >>> window = assemble_window(views, tiny, 10, -3, 20, 30)
+    >>> torch.equal(window[:, 3:], assemble_frame(views, tiny)[10:30, :27])
+    True
+    """
+    out = torch.zeros(height, width)
+    rows, cols = config.padded_shape
+    row0, row1 = max(top, 0), min(top + height, rows)  # the window's part inside the frame
+    col0, col1 = max(left, 0), min(left + width, cols)
+    if row0 >= row1 or col0 >= col1:
+        return out
+    total = torch.zeros(row1 - row0, col1 - col0)
+    count = torch.zeros(row1 - row0, col1 - col0)
+    size = config.sub_view_size
+    for lens, (r0, c0) in enumerate(sub_view_origins(config)):
+        wr0, wr1, vr0, vr1 = _overlap(int(r0) - row0, size, row1 - row0)
+        wc0, wc1, vc0, vc1 = _overlap(int(c0) - col0, size, col1 - col0)
+        if wr0 < wr1 and wc0 < wc1:
+            part = np.asarray(views[lens, vr0:vr1, vc0:vc1], dtype=np.float32)
+            total[wr0:wr1, wc0:wc1] += torch.from_numpy(part)
+            count[wr0:wr1, wc0:wc1] += 1
+    out[row0 - top : row1 - top, col0 - left : col1 - left] = total / count.clamp(min=1)
+    return out
 
 
 def crop_to_sensor(frame: torch.Tensor, config: SystemConfig) -> torch.Tensor:

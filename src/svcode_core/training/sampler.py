@@ -30,11 +30,12 @@ from ..methods.exposure import exposure_gain
 from ..methods.tiling import TileGrid
 from ..physics.geometry import (
     assemble_frame,
+    assemble_window,
     context_corners,
     crop_to_sensor,
+    crops_at,
     pad_sensor_frame,
     sensor_coverage,
-    sub_view_origins,
 )
 from ..physics.noise import SensorModel
 from .dataset import TrainingData
@@ -171,7 +172,8 @@ class _NoisySamples(torch.utils.data.Dataset):
         rows, cols = self.system.sensor_window
         crops = torch.zeros(len(corners), size, size)
         for (top, left, bottom, right), members in windows:
-            values = self._assemble(frame, top, left, bottom, right)
+            values = assemble_window(self.data.views[frame], self.system, top, left,
+                                     bottom - top, right - left)  # fmt: skip
             if sensor is not None:  # the sensor's pixels in the window: read; the rest stays 0
                 r0, r1 = max(top, rows.start), min(bottom, rows.stop)
                 c0, c1 = max(left, cols.start), min(right, cols.stop)
@@ -180,25 +182,8 @@ class _NoisySamples(torch.utils.data.Dataset):
                     inside = (slice(r0 - top, r1 - top), slice(c0 - left, c1 - left))
                     read[inside] = sensor.read(values[inside], generator)
                 values = read
-            for index in members:
-                _paste(crops[index], values, int(corners[index][0]) - top,
-                       int(corners[index][1]) - left)  # fmt: skip
+            crops[members] = crops_at(values, corners[members] - (top, left), size)
         return crops
-
-    def _assemble(self, frame: int, top: int, left: int, bottom: int, right: int) -> torch.Tensor:
-        """:func:`~svcode_core.physics.geometry.assemble_frame` of frame ``frame`` on the
-        padded-frame window ``[top, bottom) × [left, right)``, reading only its pixels."""
-        total = torch.zeros(bottom - top, right - left)
-        count = torch.zeros(bottom - top, right - left)
-        size = self.system.sub_view_size
-        for lens, (r0, c0) in enumerate(sub_view_origins(self.system)):
-            a, b = max(top, r0), min(bottom, r0 + size)
-            c, d = max(left, c0), min(right, c0 + size)
-            if a < b and c < d:
-                view = self.data.views[frame][lens, a - r0 : b - r0, c - c0 : d - c0]
-                total[a - top : b - top, c - left : d - left] += self.data.read(view)
-                count[a - top : b - top, c - left : d - left] += 1
-        return total / count.clamp(min=1)
 
 
 def _merged_windows(
@@ -230,16 +215,6 @@ def _merged_windows(
         if box[0] < box[2] and box[1] < box[3]:
             windows.append((box, members))
     return windows
-
-
-def _paste(crop: torch.Tensor, values: torch.Tensor, row: int, col: int) -> None:
-    """Copy ``values`` into ``crop`` with its top-left at ``(row, col)`` of ``values``
-    (the parts of ``crop`` outside ``values`` are left as they are)."""
-    r0, c0 = max(row, 0), max(col, 0)
-    r1 = min(row + crop.shape[0], values.shape[0])
-    c1 = min(col + crop.shape[1], values.shape[1])
-    if r0 < r1 and c0 < c1:
-        crop[r0 - row : r1 - row, c0 - col : c1 - col] = values[r0:r1, c0:c1]
 
 
 class PatchDataset(_NoisySamples):
