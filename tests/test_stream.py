@@ -245,6 +245,8 @@ def test_cli_reconstructs_a_stack(tiny_system, stack, tmp_path, monkeypatch, cap
             "16",
             "--stride",
             "8",
+            "--precision",  # "auto" would read the stand-in file's metadata
+            "fp32",
             "--quiet",
         ]
     )

@@ -268,6 +268,7 @@ class MethodPanel(Container):
                     options.get("tile_size"),
                     None,
                     options.get("batch_size"),
+                    device=device,
                 )
             except ValueError:  # the core refuses the tile size when the run starts
                 return Cost(0.0, memory, "")

@@ -36,6 +36,7 @@ from svcode_core.methods import (
     build_reconstructor,
     cli_arguments,
     iter_method,
+    registry,
 )
 from svcode_core.methods.base import FrameProgress, ReconstructionResult, check_frame_shape
 from svcode_core.methods.frames import few_bits_scale, few_bits_warning, frame_warnings
@@ -726,8 +727,9 @@ class ReconstructWidget(Container):
         path = panel.weights_path(system.name if system else None) \
             if panel.method.value != "svcode" or panel.model.source.value != panel.model.BUNDLED \
             else None
+        default = registry.method(panel.method.value).precisions[0]
         options = {key: value for key, value in panel.options().items()
-                   if not (key == "precision" and value == "fp32")}
+                   if not (key == "precision" and value == default)}
         if self._device.value != "cpu":
             options["device"] = self._device.value
         arguments = cli_arguments(panel.method.value, path, **options)
@@ -769,8 +771,10 @@ def _returning(value: Any) -> Callable[[], Any]:
 
 def _label(panel: MethodPanel) -> str:
     """The method and its knobs, e.g. ``"LSV-ADMM (TV), 10 iterations, λ auto"``."""
+    default = registry.method(panel.method.value).precisions[0]
     knobs = [KNOBS[key].format(value) for key, value in panel.options().items()
-             if key in KNOBS and value is not None and value != "fp32"]
+             if key in KNOBS and value is not None
+             and not (key == "precision" and value == default)]
     return ", ".join([panel.describe(), *knobs])
 
 

@@ -46,11 +46,13 @@ __all__ = [
     "FrameProgress",
     "ReconstructionResult",
     "check_frame_shape",
+    "native_bf16",
     "precision_dtype",
     "resolve_device",
 ]
 
 #: every compute precision by name; each method accepts those of its registry entry
+#: (SV-CoDe also ``"auto"``, which chooses one of these: :func:`.svcode.auto_precision`)
 PRECISIONS: dict[str, torch.dtype] = {
     "fp32": torch.float32,
     "fp64": torch.float64,
@@ -93,7 +95,19 @@ def precision_dtype(precision: str, method_name: str, reason: str = "") -> torch
                 f"{' (' + reason + ')' if reason else ''}; use {known}"
             )
         raise ValueError(f"precision: {precision!r} is not one of {known}")
-    return PRECISIONS[precision]
+    return PRECISIONS.get(precision, torch.float32)  # "auto" is at least float32's size
+
+
+def native_bf16(device: torch.device) -> bool:
+    """Whether ``device`` computes in bfloat16 in hardware, where bf16 is faster than fp32:
+    a CPU with AVX-512 BF16 or AMX units, or a CUDA GPU with bf16 arithmetic (elsewhere
+    bf16 is emulated and slower)."""
+    if device.type == "cpu":
+        probes = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
+        return any(getattr(torch.cpu, name, lambda: False)() for name in probes)
+    if device.type == "cuda":
+        return torch.cuda.is_bf16_supported(including_emulation=False)
+    return False
 
 
 def resolve_device(device: str | torch.device) -> torch.device:

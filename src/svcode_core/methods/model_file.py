@@ -29,7 +29,7 @@ from ..network.models import DemixNet, ReconNet, SVCoDe
 from .base import resolve_device
 from .learned.models import LEARNED_MODELS
 
-__all__ = ["FORMAT", "load_model", "read_model_metadata", "save_model"]
+__all__ = ["FORMAT", "load_model", "read_model_metadata", "record_extra", "save_model"]
 
 FORMAT = "svcode-model-1"
 _MAX_HEADER = 100 * 2**20
@@ -126,6 +126,19 @@ def read_model_metadata(path: str | Path) -> dict[str, Any]:
     }
 
 
+def record_extra(path: str | Path, **items: Any) -> None:
+    """Add ``items`` to a model file's ``extra`` metadata, the weights kept bit for bit (the
+    file is replaced whole, never left half written)."""
+    path = Path(path)
+    read_model_metadata(path)  # a model file, or a clear error
+    header = _read_header(path)["__metadata__"]
+    extra = {**json.loads(header.get("extra", "{}")), **items}
+    state = load_file(str(path), device="cpu")
+    partial = path.with_name(path.name + ".partial")
+    save_file(state, str(partial), metadata={**header, "extra": json.dumps(extra)})
+    partial.replace(path)
+
+
 #: System fields a model does not depend on: the chief rays only say where the sub-views
 #: are cut, and a model sees the sub-views with coordinates relative to them, so it applies
 #: unchanged to a system whose chief rays moved (calibrated, self-registered, nudged).
@@ -192,6 +205,8 @@ def load_model(
     if len(dtypes) == 1:
         model.to(dtypes.pop())
     model.load_state_dict(state, strict=True)
+    # what the file says of reduced precision (read by methods.svcode.auto_precision)
+    model.precision_check = meta["extra"].get("precision_check", {})
     return model.to(device).eval(), stored
 
 

@@ -399,7 +399,7 @@ _CROSSTALK = ("approximate intensities: each view also holds its neighbours' cro
               "which this method does not model; its output is divided by its response to a "
               "uniform object, so only a uniform scene comes out in the object's units")
 _ALL = (
-    Method(SVCODE, "SV-CoDe (network)", "SV-CoDe", SVCODE, ("fp32", "bf16", "fp16"),
+    Method(SVCODE, "SV-CoDe (network)", "SV-CoDe", SVCODE, ("auto", "fp32", "bf16", "fp16"),
            _SVCODE_OPTIONS, "SVCoDe", ".svcode:Reconstructor"),
     Method("admm", "LSV-ADMM (TV)", "LSV-ADMM", MODEL_BASED, ("fp32", "fp64"), _ADMM_OPTIONS,
            reconstructor=".baselines:AdmmReconstructor"),

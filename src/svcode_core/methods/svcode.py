@@ -23,8 +23,11 @@ Devices and precision
     ``device`` is ``"cpu"``, ``"cuda"`` / ``"cuda:N"`` or ``"mps"``; an unavailable one is a
     clear error. ``precision`` ``"fp32"`` runs as is; ``"bf16"`` and ``"fp16"`` run under
     :func:`torch.autocast`. ``"fp16"`` on the CPU is refused (PyTorch's CPU half-precision
-    kernels are slow and partly missing): use ``"bf16"`` there. Inputs and outputs stay on
-    the host; only one batch of tiles is on the device at a time.
+    kernels are slow and partly missing): use ``"bf16"`` there. ``"auto"`` (the default)
+    is :func:`auto_precision`: bf16 where the device computes it in hardware and the model
+    file records that bf16 costs at most :data:`AUTO_TOLERANCE_DB` on the held-out
+    benchmark, else fp32. Inputs and outputs stay on the host; only one batch of tiles is
+    on the device at a time.
 """
 
 from __future__ import annotations
@@ -51,6 +54,7 @@ from .base import (
     BaseReconstructor,
     FrameProgress,
     ReconstructionResult,
+    native_bf16,
     precision_dtype,
     resolve_device,
 )
@@ -66,12 +70,37 @@ from .tiling import (
     tiles_with_signal,
 )
 
-__all__ = ["Reconstructor", "TilePlan", "plan_tiles", "tile_plan"]
+__all__ = ["AUTO_TOLERANCE_DB", "Reconstructor", "TilePlan", "auto_precision", "plan_tiles",
+           "tile_plan"]
 
 _SVCODE = registry.method("svcode")
 _DEFAULTS = _SVCODE.defaults
 DEFAULT_MASK_CACHE_BYTES = _DEFAULTS["mask_cache_bytes"]
 DEFAULT_TILE_MEMORY_BYTES = DEFAULT_MEMORY_BUDGET
+#: the most bf16 may lose against fp32 (mean PSNR of a held-out regime, dB) for ``"auto"``
+#: to choose it
+AUTO_TOLERANCE_DB = 0.05
+
+
+def auto_precision(checks: dict[str, Any], device: str | torch.device) -> str:
+    """The precision ``"auto"`` runs a model in on ``device``: ``"bf16"`` where the device
+    computes bf16 in hardware (:func:`~.base.native_bf16`) and the model's own check
+    (``checks``: ``precision_check`` in its file's ``extra`` metadata, written by
+    ``bench/precision.py --record``) found bf16 within :data:`AUTO_TOLERANCE_DB` of fp32 in
+    every held-out regime; else ``"fp32"``.
+
+    Examples
+    --------
+    >>> auto_precision({}, "cpu")  # nothing recorded
+    'fp32'
+    >>> auto_precision({"bf16": {"loss_db": 0.3}}, "cpu")  # bf16 costs too much
+    'fp32'
+    """
+    check = checks.get("bf16")
+    if check is not None and check["loss_db"] <= AUTO_TOLERANCE_DB:
+        if native_bf16(torch.device(device)):
+            return "bf16"
+    return "fp32"
 
 
 def plan_tiles(
@@ -138,11 +167,12 @@ class TilePlan(NamedTuple):
 def tile_plan(
     model: torch.nn.Module | None,
     system: SystemConfig,
-    precision: str = "fp32",
+    precision: str = "auto",
     tile_size: int | None = None,
     stride: int | None = None,
     batch_size: int | None = None,
     tile_memory_bytes: int = DEFAULT_TILE_MEMORY_BYTES,
+    device: str | torch.device = "cpu",
 ) -> TilePlan:
     """The tiling of :class:`Reconstructor` (its arguments of the same names; a ``None``
     is planned): what ``svcode reconstruct`` and the plugin run and estimate.
@@ -158,6 +188,8 @@ def tile_plan(
     (16129, 3, 8)
     """
     planned_batch = 8
+    if precision == "auto":
+        precision = auto_precision(getattr(model, "precision_check", {}), device)
     if tile_size is None and hasattr(model, "working_bytes_per_pixel"):
         tile_size, planned, planned_batch = plan_tiles(
             model, system.sub_view_size, tile_memory_bytes, PRECISIONS[precision]
@@ -209,7 +241,8 @@ class Reconstructor(BaseReconstructor):
         The instrument the frames come from (and the model was trained for).
     device : str
         ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or ``"mps"``.
-    precision : {"fp32", "bf16", "fp16"}
+    precision : {"auto", "fp32", "bf16", "fp16"}
+        ``"auto"``: :func:`auto_precision`; :attr:`precision` holds the one chosen.
     tile_size : int, optional
         Tile side ``P``. Default: :func:`plan_tiles` within ``tile_memory_bytes`` (the
         whole sub-view when it fits) for an SV-CoDe model, else ``system.patch_size``.
@@ -271,7 +304,7 @@ class Reconstructor(BaseReconstructor):
         model: torch.nn.Module,
         system: SystemConfig,
         device: str | torch.device = "cpu",
-        precision: str = "fp32",
+        precision: str = "auto",
         tile_size: int | None = None,
         stride: int | None = None,
         batch_size: int | None = None,
@@ -288,6 +321,8 @@ class Reconstructor(BaseReconstructor):
         self.system = system.validate()
         self.device = resolve_device(device)
         precision_dtype(precision, self.method)
+        if precision == "auto":
+            precision = auto_precision(getattr(model, "precision_check", {}), self.device)
         if precision == "fp16" and self.device.type == "cpu":
             raise ValueError("precision: fp16 is not supported on the CPU; use bf16 or fp32")
         self.precision = precision
