@@ -32,6 +32,24 @@ def test_the_level_scales_with_the_frame_and_ignores_hot_pixels():
     assert exposure_gain(spot) == pytest.approx(REFERENCE_LEVEL / (4 * 3.0 / 9))
 
 
+@pytest.mark.parametrize("shape", [(40, 50), (3, 17, 9), (1, 1), (2, 3)])
+def test_the_level_is_scipys_filters(shape):
+    """The same rule written with scipy.ndimage's filters (zeros outside the frame)."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(2)
+    frame = (rng.random(shape) ** 4).astype(np.float32)
+    frame.flat[rng.integers(frame.size)] = 30.0
+    plane = (1,) * (frame.ndim - 2)
+    neighbours = np.ones((3, 3), bool)
+    neighbours[1, 1] = False
+    despiked = np.minimum(frame, ndimage.maximum_filter(
+        frame, footprint=neighbours.reshape(plane + (3, 3)), mode="constant"))
+    expected = ndimage.uniform_filter(despiked, size=plane + (3, 3), mode="constant").max()
+    # float32 sums of three then three values, in another order: a few units of rounding
+    assert exposure_level(frame) == pytest.approx(float(expected), rel=4 * 2.0**-24, abs=0)
+
+
 def test_svcode_is_exactly_scale_equivariant(tiny_system, tiny_model_config):
     """A power-of-two scale reaches the network as the same bits (the gain absorbs it
     exactly), so the output is the reconstruction of the frame, scaled: equal bit for bit."""

@@ -24,9 +24,6 @@ REFERENCE_LEVEL = 0.58
 ``cm2-mini`` model's training frames (0.576 over 32 of them, noisy, through their own
 instruments; the middle 80 % lie within 0.30–1.25)."""
 
-_NEIGHBOURS = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]], dtype=bool)
-
-
 def exposure_level(frame: np.ndarray) -> float:
     """A frame's brightness, robust to hot pixels; ``exposure_level(s · x) == s ·
     exposure_level(x)`` for ``s > 0``.
@@ -43,14 +40,17 @@ def exposure_level(frame: np.ndarray) -> float:
     >>> exposure_level(frame), exposure_level(0.25 * frame)
     (1.0, 0.25)
     """
-    from scipy import ndimage  # here: the command line's start-up does not need it
-
     values = np.asarray(frame, dtype=np.float32)
-    plane = (1,) * (values.ndim - 2)
-    brightest_neighbour = ndimage.maximum_filter(
-        values, footprint=_NEIGHBOURS.reshape(plane + (3, 3)), mode="constant")
-    despiked = np.minimum(values, brightest_neighbour)
-    return float(ndimage.uniform_filter(despiked, size=plane + (3, 3), mode="constant").max())
+    rows, cols = values.shape[-2:]
+    padded = np.pad(values, [(0, 0)] * (values.ndim - 2) + [(1, 1), (1, 1)])  # zeros outside
+    brightest = np.zeros_like(values)
+    for dr, dc in ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)):
+        np.maximum(brightest, padded[..., 1 + dr : 1 + dr + rows, 1 + dc : 1 + dc + cols],
+                   out=brightest)  # fmt: skip
+    padded[..., 1:-1, 1:-1] = np.minimum(values, brightest)  # despiked, zeros outside
+    across = (padded[..., :-2] + padded[..., 1:-1] + padded[..., 2:]) / np.float32(3)
+    box = (across[..., :-2, :] + across[..., 1:-1, :] + across[..., 2:, :]) / np.float32(3)
+    return float(box.max())
 
 
 def exposure_gain(frame: np.ndarray, reference: float = REFERENCE_LEVEL) -> float:
