@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -559,6 +560,38 @@ def test_reconstruct_cancel_stops_within_a_batch(qtbot, monkeypatch, tiny_system
     assert model.calls <= at_cancel + 1  # at most the batch that was running
     assert widget.frames_done < 6 and not widget._cancel.enabled
     assert notices and "cancelled after" in notices[-1]
+
+
+def test_a_paper_scale_frame_shows_its_tiles_and_cancels_within_one(
+        qtbot, monkeypatch, tmp_path, tiny_model_config, make_napari_viewer):
+    """A whole cm2-v2 frame (3000 × 4000 sensor, 2400² sub-views) in 25 tiles: the status
+    line counts them as they run, and Cancel stops after the tile that is running."""
+    system = SystemConfig.preset("cm2-v2")
+    torch.manual_seed(0)  # masks on a lattice, as the bundled models have them
+    model = SVCoDe(tiny_model_config.replace(mask_spacing=48))
+    path = save_model(tmp_path / "v2.safetensors", model, system)
+    model = _slow_model(monkeypatch, path, system, 0.2)
+    # the network's own work is beside the point here (a 2-channel grouped convolution
+    # over 800² takes a tenth of a second): each tile returns its views at once
+    model.inner.forward = lambda views, origins, size: (views, views.mean(1, keepdim=True))
+    statuses: list[str] = []
+    viewer = make_napari_viewer()
+    frame = np.full(system.sensor_shape, 0.2, np.float32)
+    viewer.add_image(frame, name="raw", metadata=layer_metadata(system, "measurement"))
+    widget = _dock(viewer, ReconstructWidget)
+    _use_model(widget, path)
+    widget._panel.tile.value, widget._panel.batch.value = 800, 1  # stride 400: 5 × 5 tiles
+    widget._progress.changed.connect(lambda value: statuses.append(widget._status.value))
+    worker = widget.start() or widget.start()  # the second press confirms a long run
+    assert worker is not None
+    qtbot.waitUntil(lambda: model.calls >= 3, timeout=60_000)
+    widget.cancel()
+    at_cancel = model.calls
+    _wait_done(qtbot, widget)
+    assert model.calls <= at_cancel + 1 < 25  # at most the tile that was running
+    counted = [status for status in statuses if re.search(r", tiles [1-9]\d*/25\b", status)]
+    assert counted, statuses  # (the line is updated at most every few tiles)
+    assert "reconstruction" not in viewer.layers and widget.frames_done == 0
 
 
 def test_reconstruct_errors_are_notices(make_model_file, qtbot, tmp_path, tiny_system,
