@@ -126,6 +126,10 @@ def test_train_from_initial_weights(tiny_system, tiny_model_config, tmp_path, ca
     assert "leave out --model-config and --ablation" in capsys.readouterr().err
     assert main([*args, "--method", "fouriernet"]) == 2
     assert "not one for --method fouriernet" in capsys.readouterr().err
+    # no model is bundled for this system: the way on, for training
+    assert main([*args[:7], "--init", "pretrained", *args[9:]]) == 2
+    err = capsys.readouterr().err
+    assert "no bundled SV-CoDe model for system 'tiny'" in err and "--init FILE" in err
 
 
 def test_resume_names_a_damaged_file_and_what_to_do(tiny_system, tiny_model_config, tmp_path,

@@ -145,7 +145,15 @@ def initial_weights(args: argparse.Namespace, system: SystemConfig) -> tuple[Pat
     if args.model_config is not None or args.ablation != "none":
         raise ValueError("--init takes the network configuration from the model file: "
                          "leave out --model-config and --ablation")  # fmt: skip
-    path = require_bundled_weights(system) if args.init == "pretrained" else Path(args.init)
+    if args.init == "pretrained":
+        try:
+            path = require_bundled_weights(system)
+        except FileNotFoundError as err:  # its advice (--weights) is for reconstructing
+            raise FileNotFoundError(f"--init pretrained: {str(err).split(';')[0]}; train "
+                                    "from scratch (leave out --init) or give a model file "
+                                    "of this system as --init FILE") from None
+    else:
+        path = Path(args.init)
     config = read_model_metadata(path)["model_config"]
     expected = config_class(args.method)
     if not isinstance(config, expected):
