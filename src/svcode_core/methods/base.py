@@ -95,7 +95,7 @@ def precision_dtype(precision: str, method_name: str, reason: str = "") -> torch
                 f"{' (' + reason + ')' if reason else ''}; use {known}"
             )
         raise ValueError(f"precision: {precision!r} is not one of {known}")
-    return PRECISIONS.get(precision, torch.float32)  # "auto" is at least float32's size
+    return PRECISIONS.get(precision, torch.float32)  # "auto": the method resolves it itself
 
 
 def native_bf16(device: torch.device) -> bool:
