@@ -401,6 +401,25 @@ def test_bf16_training_step_runs_the_forward_in_bf16(tiny_data, tmp_path):
         TrainConfig(precision="fp16").validate()
 
 
+@pytest.mark.parametrize("native", [True, False])
+def test_the_best_model_file_records_its_bf16_check(tiny_data, tmp_path, monkeypatch, native):
+    """With bf16 units the best epoch is validated again in bf16 and the PSNR it loses is
+    written into best.safetensors, which precision="auto" reads; without them, nothing."""
+    from svcode_core.methods.model_file import read_model_metadata
+
+    monkeypatch.setattr("svcode_core.training.trainer.native_bf16", lambda device: native)
+    trainer = _trainer(tiny_data, tmp_path, epochs=1)
+    trainer.fit()
+    extra = read_model_metadata(tmp_path / "best.safetensors")["extra"]
+    if not native:
+        assert "precision_check" not in extra
+        return
+    fp32 = trainer.best["val_recon_psnr"]
+    bf16 = trainer.validate(autocast=True)["val_recon_psnr"]
+    assert extra["precision_check"]["bf16"]["loss_db"] == pytest.approx(fp32 - bf16, abs=1e-4)
+    assert "4 validation patches" in extra["precision_check"]["bf16"]["measured_on"]
+
+
 def test_resume_may_change_compile_but_not_precision(tiny_data, tmp_path, monkeypatch):
     # nothing is compiled (resuming a finished run runs no step): no compiler needed
     monkeypatch.setattr("svcode_core.training.trainer._cxx_compiler", lambda: "c++")

@@ -25,7 +25,10 @@ noise draw follow from the seed and the epoch, so ``resume`` after an interrupti
 continues exactly as the uninterrupted run would (on the same device and thread count).
 The training steps' forward pass runs under bf16 autocast on CUDA, and on any device with
 ``precision="bf16"``; the loss is always computed in float32, and validation runs in
-float32, so that runs in either precision are scored alike.
+float32, so that runs in either precision are scored alike. On a device with bf16 units,
+an SV-CoDe model's best epoch is validated once more under bf16 autocast, and the PSNR it
+loses is written into ``best.safetensors`` (``precision_check``): reconstructions with
+``precision="auto"`` run such a model in bf16 when the loss is at most 0.05 dB.
 """
 
 from __future__ import annotations
@@ -48,6 +51,7 @@ from torch.nn.parallel import DistributedDataParallel
 from tqdm.auto import tqdm
 
 from ..io import atomic_path, write_text_atomic
+from ..methods.base import native_bf16
 from ..methods.learned import FourierNetConfig, MultiWienerConfig
 from ..methods.model_file import load_model, save_model
 from ..network import ModelConfig, SVCoDe, with_lens_context
@@ -327,9 +331,10 @@ class Trainer:
         return self.device if on_gpu else torch.device("cpu")
 
     @torch.no_grad()
-    def validate(self) -> dict[str, float]:
+    def validate(self, autocast: bool = False) -> dict[str, float]:
         """Loss, PSNR and SSIM of every stage (:attr:`metrics`) on the fixed validation
-        samples (fixed noise), averaged over samples and processes."""
+        samples (fixed noise), averaged over samples and processes; the forward pass in
+        float32, or under bf16 autocast."""
         self.model.eval()
         names = self.metrics
         sums = torch.zeros(len(names) + 1, dtype=torch.float64)
@@ -338,7 +343,7 @@ class Trainer:
             for start in range(0, len(self.val_indices), size):
                 items = [self.val_set[i] for i in self.val_indices[start : start + size]]
                 batch = self._to_device(self.task.collate(items))
-                stages = self._forward(self.model, batch)
+                stages = self._forward(self.model, batch, autocast)
                 loss, _ = joint_loss(stages, self.config.alpha, self.config.beta,
                                      self._loss_weights(batch))
                 n = len(items)
@@ -391,9 +396,11 @@ class Trainer:
             record["cpu_seconds"] = round(time.process_time() - cpu_start, 3)  # all threads
             self.history.append(record)
             self.epoch = epoch + 1
+            improved = not self.best or record["val_recon_psnr"] > self.best["val_recon_psnr"]
+            if improved:  # on every process: the bf16 check validates
+                self.best = {**record, **self._bf16_check()}
             if self.dist.is_main:
-                if not self.best or record["val_recon_psnr"] > self.best["val_recon_psnr"]:
-                    self.best = dict(record)
+                if improved:
                     self._save_best()
                 self.save_checkpoint()
                 self._write_logs()
@@ -417,8 +424,21 @@ class Trainer:
             "device": str(self.device),
         }
 
+    def _bf16_check(self) -> dict[str, float]:
+        """SV-CoDe on a device with bf16 units: the validation reconstruction PSNR under
+        bf16 autocast, from which the model file's ``precision_check`` is written (what
+        ``precision="auto"`` reads when reconstructing); else nothing."""
+        if self.task.unit != "patches" or not native_bf16(self.device):
+            return {}
+        return {"val_recon_psnr_bf16": self.validate(autocast=True)["val_recon_psnr"]}
+
     def _save_best(self) -> None:
         extra = {**self._metadata(), "epoch": self.best["epoch"], "metrics": self.best}
+        if "val_recon_psnr_bf16" in self.best:
+            loss = self.best["val_recon_psnr"] - self.best["val_recon_psnr_bf16"]
+            extra["precision_check"] = {"bf16": {
+                "loss_db": round(loss, 4), "measured_on": f"{self.val_total} validation "
+                f"{self.task.unit} of {self.data.path.name}, epoch {self.best['epoch']}"}}
         _atomic_write(self.out / BEST, lambda tmp: save_model(tmp, self.model, self.system, extra))
 
     # ------------------------------------------------------------ checkpoints
