@@ -293,7 +293,7 @@ def svcode_mini(check: Check) -> list[str]:
               "max |x_cpu| against the CPU's fp32 reconstruction:", "",
               "| device | precision | s per frame | tiles run | difference | peak GPU MiB |",
               "|---|---|---|---|---|---|"]
-    cpu = Reconstructor.pretrained(device="cpu")
+    cpu = Reconstructor.pretrained(device="cpu", precision="fp32")
     cpu_seconds, reference = _timed_frames(cpu, frame, lambda: None)
     lines.append(f"| cpu | fp32 | {cpu_seconds:.2f} | {reference.tiles_run} | 0 | n/a |")
     for precision in ("fp32", "bf16") if check.cuda else ():

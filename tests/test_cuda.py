@@ -106,7 +106,7 @@ def test_network_forward_matches_the_cpu(full_float32):
 def test_tiled_reconstruction_matches_the_cpu(full_float32):
     """The bundled model over 9 overlapping tiles (batched, blended) on a cm2-mini frame."""
     frame = np.random.default_rng(0).uniform(0.0, 0.3, (480, 640)).astype(np.float32)
-    options = {"tile_size": 192, "stride": 96, "batch_size": 4}
+    options = {"tile_size": 192, "stride": 96, "batch_size": 4, "precision": "fp32"}
     cpu = Reconstructor.pretrained(device="cpu", **options).reconstruct(frame, return_views=True)
     gpu = Reconstructor.pretrained(device="cuda", **options).reconstruct(frame, return_views=True)
     assert gpu.tiles_run == cpu.tiles_run == 9
