@@ -31,3 +31,25 @@ def test_demo_reconstructs_and_scores(tmp_path, capsys):
     assert "SV-CoDe: PSNR" in printed and "s per frame" in printed
     for name in ("demo.png", "measurement.tif", "reconstruction.tif", "system.json"):
         assert (out / name).is_file()
+
+
+@pytest.mark.parametrize("long_frame", [False, True])
+def test_demo_says_what_it_will_cost_first(tmp_path, capsys, monkeypatch, tiny_system,
+                                           tiny_weights, long_frame):
+    """The first line names the tiles and a rough time; a frame estimated to be long is
+    reconstructed once, timed with its set-up, instead of twice."""
+    import svcode_core.cli.demo as demo
+
+    calls = []
+    monkeypatch.setattr(Reconstructor, "reconstruct",
+                        lambda self, *a, _real=Reconstructor.reconstruct, **k:
+                        calls.append(1) or _real(self, *a, **k))  # fmt: skip
+    if long_frame:
+        monkeypatch.setattr(demo, "WARM_UP_BELOW_SECONDS", 0.0)
+    system = tiny_system.save(tmp_path / "tiny.json")
+    assert main(["demo", "--system", str(system), "--weights", str(tiny_weights),
+                 "--out", str(tmp_path / "demo")]) == 0
+    first, *rest = capsys.readouterr().out.splitlines()
+    assert "in 1 tile (fp32): roughly" in first and "of reconstruction on this cpu" in first
+    assert len(calls) == (1 if long_frame else 2)
+    assert ("with its set-up" in "".join(rest)) == long_frame

@@ -11,7 +11,6 @@ what a run would cost from the core's tiling (:func:`svcode_core.methods.svcode.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -30,6 +29,7 @@ from magicgui.widgets.bases import ValueWidget
 
 from svcode_core.config import SystemConfig
 from svcode_core.methods import LEARNED_METHODS, METHOD_TITLES, METHODS, registry
+from svcode_core.methods.cost import duration, iteration_seconds, tile_seconds
 from svcode_core.methods.registry import SVCODE, Option
 from svcode_core.methods.svcode import tile_plan
 
@@ -38,12 +38,6 @@ from ._choosers import ModelChooser
 
 __all__ = ["Cost", "MethodPanel"]
 
-#: rough CPU seconds per SV-CoDe tile of 96 × 96 pixels (larger tiles scale with area)
-SECONDS_PER_TILE = 0.15
-#: rough CPU seconds per LSV-ADMM / RL iteration on a 384 × 384 object grid
-SECONDS_PER_ITERATION = 1.0
-#: a GPU is taken to be this much faster
-GPU_SPEED_UP = 20.0
 #: runs estimated to take longer ask first
 LONG_RUN_SECONDS = 15 * 60
 #: runs estimated to need more than this share of the free memory ask first
@@ -67,14 +61,8 @@ class Cost:
             return (f"needs about {self.memory / 2**30:.1f} GiB, {available / 2**30:.1f} GiB "
                     f"free ({self.detail})")  # fmt: skip
         if self.seconds > LONG_RUN_SECONDS:
-            return f"would take about {_duration(self.seconds)} ({self.detail})"
+            return f"would take about {duration(self.seconds)} ({self.detail})"
         return None
-
-
-def _duration(seconds: float) -> str:
-    if seconds >= 5400:
-        return f"{seconds / 3600:.1f} h"
-    return f"{math.ceil(seconds / 60)} min"
 
 
 def _key(option: Option) -> str:
@@ -256,9 +244,8 @@ class MethodPanel(Container):
         tiles and working memory as the core plans them (:func:`tile_plan`)."""
         entry, options = registry.method(self.method.value), self.options()
         size = system.sub_view_size
-        speed = 1.0 if device == "cpu" else GPU_SPEED_UP
         memory = frames * size * size * 4 * (10 if views else 1)
-        per_iteration = SECONDS_PER_ITERATION * (size / 384) ** 2 / speed
+        per_iteration = iteration_seconds(size, device)
         if entry.family == SVCODE:
             try:
                 plan = tile_plan(
@@ -274,7 +261,7 @@ class MethodPanel(Container):
                 return Cost(0.0, memory, "")
             per_frame = len(plan.grid)
             tiles = per_frame * frames
-            seconds = tiles * SECONDS_PER_TILE * max(1.0, (plan.grid.patch / 96) ** 2) / speed
+            seconds = tile_seconds(tiles, plan.grid.patch, device)
             memory += entry.defaults["mask_cache_bytes"] + plan.working_bytes
             detail = f"{tiles:,} tile{'s' * (tiles > 1)}" if frames == 1 else (
                 f"{tiles:,} tiles: {per_frame:,} a frame × {frames} frames")  # fmt: skip

@@ -8,6 +8,9 @@ from pathlib import Path
 
 from . import SUMMARIES, add_object_argument, add_system_arguments, chosen_system, system_file
 
+#: frames estimated to take longer are not reconstructed twice (once to warm up)
+WARM_UP_BELOW_SECONDS = 20.0
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Register ``svcode demo``."""
@@ -38,6 +41,7 @@ def run(args: argparse.Namespace) -> int:
     from ..evaluation.figures import overview_figure
     from ..evaluation.metrics import image_quality
     from ..io import write_tiff
+    from ..methods.cost import duration, tile_seconds
     from ..methods.svcode import Reconstructor
     from ..outputs import check_outputs
     from ..phantoms import make_object
@@ -51,10 +55,20 @@ def run(args: argparse.Namespace) -> int:
         rec = Reconstructor.from_weights(args.weights, system, device=args.device)
     else:
         rec = Reconstructor.pretrained(system, device=args.device)
+    estimate = tile_seconds(len(rec.grid), rec.grid.patch, str(rec.device))
+    warm_up = estimate < WARM_UP_BELOW_SECONDS  # a long frame is timed with its set-up
+    runs = "twice (a warm-up, then timed)" if warm_up else "once (timed with its set-up)"
+    print(f"system {system.name}: sensor {system.sensor_shape}, sub-views "
+          f"{system.sub_view_size}², object {args.object} (seed {args.seed}); simulating "
+          f"one frame, then reconstructing it {runs} in {len(rec.grid)} "
+          f"tile{'s' * (len(rec.grid) > 1)} ({rec.precision}): roughly "
+          f"{duration(estimate * (1 + warm_up))} of reconstruction on this {rec.device.type}",
+          flush=True)
     obj = make_object(args.object, system.sub_view_size, args.seed)
     simulator = Simulator(system)
     scene = simulator.simulate(obj, seed=args.seed)
-    rec.reconstruct(scene.measurement)  # warm-up: masks cached, kernels chosen
+    if warm_up:
+        rec.reconstruct(scene.measurement)  # masks cached, kernels chosen
     start = time.perf_counter()
     result = rec.reconstruct(scene.measurement, return_views=True)
     seconds = time.perf_counter() - start
@@ -73,11 +87,10 @@ def run(args: argparse.Namespace) -> int:
         title=(f"{system.name}, simulated {args.object}: PSNR {quality['psnr']:.2f} dB, "
                f"SSIM {quality['ssim']:.3f}"),
     )
-    print(f"system {system.name}: sensor {system.sensor_shape}, sub-views "
-          f"{system.sub_view_size}², object {args.object} (seed {args.seed})")
     print(f"SV-CoDe: PSNR {quality['psnr']:.2f} dB (centre {quality['psnr_centre']:.2f}, "
           f"outer ring {quality['psnr_ring']:.2f}), SSIM {quality['ssim']:.3f}")
-    print(f"{seconds:.2f} s per frame on {rec.device} ({result.tiles_run} tiles run, "
+    print(f"{seconds:.2f} s per frame{'' if warm_up else ' with its set-up'} on "
+          f"{rec.device} ({result.tiles_run} tiles run, "
           f"{result.tiles_skipped} skipped)")
     print(f"wrote {picture} and {args.out}/{{measurement,views,demixed,object,"
           "reconstruction}.tif, system.json")
