@@ -89,3 +89,29 @@ def test_the_bundled_model_records_bf16_within_the_tolerance():
     check = read_model_metadata(require_bundled_weights("cm2-mini"))["extra"]["precision_check"]
     assert check["bf16"]["loss_db"] <= AUTO_TOLERANCE_DB
     assert set(check["bf16"]["regimes"]) >= {"matched", "realistic"}
+
+
+def test_bf16_on_the_cpu_computes_the_features_in_bf16_and_leaves_the_model(
+    tiny_system, tiny_model_config
+):
+    """A bf16 reconstructor runs a bf16 copy of the network (coordinate MLPs in float32):
+    the given model keeps its float32 weights, and the output is float32's to bf16's
+    rounding (8 significant bits: 2⁻⁸ of the output's scale for its last rounding, a few
+    of them through this one-level network)."""
+    torch.manual_seed(0)
+    model = SVCoDe(tiny_model_config.replace(mask_spacing=8))
+    with torch.no_grad():
+        for name, param in model.named_parameters():
+            if name.endswith(("beta", "gamma")):
+                param.uniform_(-0.5, 0.5)  # blocks that are not the identity
+    frame = np.random.default_rng(0).uniform(0, 0.5, tiny_system.sensor_shape).astype(np.float32)
+    fp32 = Reconstructor(model, tiny_system, precision="fp32", skip_empty=False)(frame)
+    rec = Reconstructor(model, tiny_system, precision="bf16", skip_empty=False)
+    assert {p.dtype for p in model.parameters()} == {torch.float32}
+    assert rec.model is not model
+    gates = {id(p) for _, g in rec.model._gates.values() for p in g.mlp.parameters()}
+    assert all((p.dtype == torch.float32) == (id(p) in gates) for p in rec.model.parameters())
+    bf16 = rec(frame).reconstruction
+    assert bf16.dtype == np.float32
+    scale = float(np.abs(fp32.reconstruction).max())
+    np.testing.assert_allclose(bf16, fp32.reconstruction, atol=4 * 2.0**-8 * scale)

@@ -21,8 +21,9 @@ Exposure
 
 Devices and precision
     ``device`` is ``"cpu"``, ``"cuda"`` / ``"cuda:N"`` or ``"mps"``; an unavailable one is a
-    clear error. ``precision`` ``"fp32"`` runs as is; ``"bf16"`` and ``"fp16"`` run under
-    :func:`torch.autocast`. ``"fp16"`` on the CPU is refused (PyTorch's CPU half-precision
+    clear error. ``precision`` ``"fp32"`` runs as is; ``"bf16"`` on the CPU runs a copy of
+    the network in bf16 (:func:`features_in`), and on GPUs ``"bf16"`` and ``"fp16"`` run
+    under :func:`torch.autocast`. ``"fp16"`` on the CPU is refused (PyTorch's CPU half-precision
     kernels are slow and partly missing): use ``"bf16"`` there. ``"auto"`` (the default)
     is :func:`auto_precision`: bf16 where the device computes it in hardware and the model
     file records that bf16 costs at most :data:`AUTO_TOLERANCE_DB` on the held-out
@@ -33,6 +34,7 @@ Devices and precision
 from __future__ import annotations
 
 import contextlib
+import copy
 import functools
 import math
 import threading
@@ -70,8 +72,8 @@ from .tiling import (
     tiles_with_signal,
 )
 
-__all__ = ["AUTO_TOLERANCE_DB", "Reconstructor", "TilePlan", "auto_precision", "plan_tiles",
-           "tile_plan"]
+__all__ = ["AUTO_TOLERANCE_DB", "Reconstructor", "TilePlan", "auto_precision", "features_in",
+           "plan_tiles", "tile_plan"]
 
 _SVCODE = registry.method("svcode")
 _DEFAULTS = _SVCODE.defaults
@@ -101,6 +103,29 @@ def auto_precision(checks: dict[str, Any], device: str | torch.device) -> str:
         if native_bf16(torch.device(device)):
             return "bf16"
     return "fp32"
+
+
+def features_in(model: torch.nn.Module, dtype: torch.dtype) -> torch.nn.Module:
+    """A copy of an SV-CoDe ``model`` that computes its features in ``dtype``: every weight
+    in ``dtype`` but the coordinate MLPs', which stay float32 (a coordinate needs float32's
+    resolution across a 2400-px sub-view; their masks are made in float32 and stored in
+    ``dtype``). Unlike autocast, no layer casts its input, so on the CPU a bf16 frame runs
+    about 1.4x faster at the same accuracy. ``model`` itself is left as it is.
+
+    Examples
+    --------
+    >>> from svcode_core.network import ModelConfig, SVCoDe
+    >>> copy = features_in(SVCoDe(ModelConfig.mini()), torch.bfloat16)
+    >>> sorted({p.dtype for p in copy.parameters()}, key=str)
+    [torch.bfloat16, torch.float32]
+    """
+    keep = {id(p) for _, gate in model._gates.values() for p in gate.mlp.parameters()}
+    cache = model._mask_cache
+    copied = copy.deepcopy(model, memo={id(cache): None})  # the cache is not the copy's
+    for original, param in zip(model.parameters(), copied.parameters(), strict=True):
+        if id(original) not in keep:
+            param.data = param.data.to(dtype)
+    return copied
 
 
 def plan_tiles(
@@ -338,6 +363,10 @@ class Reconstructor(BaseReconstructor):
             raise ValueError(f"skip_factor must be a finite number >= 0, got {skip_factor!r}")
         self.skip_empty = skip_empty
         self.skip_threshold = system.noise.dark_offset + skip_factor * noise_floor(system.noise)
+        # bf16 on the CPU: the features themselves in bf16 (features_in), not autocast
+        self._features = None
+        if precision == "bf16" and self.device.type == "cpu" and hasattr(model, "_gates"):
+            model, self._features = features_in(model, torch.bfloat16), torch.bfloat16
         self.model = model.to(self.device).eval()
         config = getattr(model, "model_config", None)
         self._crop_views = (
@@ -462,7 +491,7 @@ class Reconstructor(BaseReconstructor):
 
     # ------------------------------------------------------------------ model
     def _autocast(self) -> contextlib.AbstractContextManager:
-        if self.precision == "fp32":
+        if self.precision == "fp32" or self._features is not None:
             return contextlib.nullcontext()
         return torch.autocast(self.device.type, dtype=PRECISIONS[self.precision])
 
@@ -470,7 +499,7 @@ class Reconstructor(BaseReconstructor):
         self, tiles: np.ndarray, origins: np.ndarray, want_views: bool
     ) -> tuple[np.ndarray | None, np.ndarray]:
         with torch.inference_mode(), self._autocast():
-            inputs = torch.from_numpy(tiles).to(self.device)
+            inputs = torch.from_numpy(tiles).to(self.device, self._features)
             where = torch.from_numpy(np.ascontiguousarray(origins)).to(self.device)
             demixed, recon = self.model(inputs, where, self.system.sub_view_size)
         views = demixed.float().cpu().numpy() if want_views else None

@@ -121,7 +121,8 @@ class TiledModel(nn.Module):
         return FastMasks(grids, self._block_names)
 
     def _encode(self, coords: torch.Tensor) -> torch.Tensor:
-        config, param = self.model_config, next(self.parameters())
+        config = self.model_config
+        param = next(iter(self._gates.values()))[1].mlp.w_out  # the masks' own precision
         return positional_encoding(
             coords, config.pe_bands, config.pe_scheme, config.positional_encoding, param.dtype
         ).to(param.device)

@@ -115,7 +115,7 @@ class FoldedMasks:
         and interpolated)."""
         grid, mlp = self.grid, block.conv1.mlp
         c, compute = block.beta.shape[1], partial(fold, block)
-        dtype = _mask_dtype(x.device, mlp.w_out.dtype)
+        dtype = _mask_dtype(x.device, x.dtype)
         channels_last = is_channels_last(x)
         if grid.cached and grid.lattice is not None:
             return cached_lattice_masks(grid, self.name, compute, dtype, channels_last)
