@@ -1,10 +1,11 @@
 """Where the SV-CoDe network's time goes, per precision, against the processor's peak.
 
-Two workloads on one thread, each in float32 and in bf16 (autocast):
+Two workloads on one thread, each in float32 and in bf16:
   * ``frame``: the bundled cm2-mini model reconstructing one sensor frame with the
-    :class:`~svcode_core.Reconstructor`'s defaults (masks kept after the first frame);
+    :class:`~svcode_core.Reconstructor`'s defaults (masks kept after the first frame; bf16
+    as the reconstructor runs it on the CPU, a bf16 copy of the network);
   * ``train``: one training step of the same network (batch 8 × 96², one shared origin,
-    forward, loss, backward, Adam), eager.
+    forward, loss, backward, Adam), eager, bf16 under autocast.
 
 The time of each torch operator (self CPU time, :mod:`torch.profiler`) is summed into
 parts: convolutions, matrix products (the coordinate MLPs), layer norms, copies (layout
