@@ -9,6 +9,7 @@ import tifffile
 import torch
 from safetensors.torch import load_file
 
+from svcode_core.io import read_tiff
 from svcode_core.methods import svcode as svcode_module
 from svcode_core.methods.model_file import load_model, read_model_metadata, record_extra, save_model
 from svcode_core.methods.svcode import AUTO_TOLERANCE_DB, Reconstructor, auto_precision
@@ -81,6 +82,7 @@ def test_the_command_records_the_precision_it_chose(bf16_units, tmp_path, tiny_s
     bf16_units(True)
     assert main([*common, "--out", str(tmp_path / "rec.tif")]) == 0
     assert "(bf16)" in capsys.readouterr().out
+    assert read_tiff(tmp_path / "rec.tif")[2]["precision"] == "bf16"  # what ran, not "auto"
     assert main([*common, "--out", str(tmp_path / "rec32.tif"), "--precision", "fp32"]) == 0
     assert "(fp32)" in capsys.readouterr().out
 
