@@ -14,9 +14,9 @@ reconstructed by the bundled model (``x₀``) and refined by LSV-ADMM warm-start
   1.4, steps of 0.1) ranked by the PSNR gain over ``x₀``, averaged over both regimes.
 
 Usage (from the repository root, after ``svcode dataset`` made ``runs/data-v2``):
-``OMP_NUM_THREADS=1 PYTHONPATH=bench python training/cm2-mini-v3/periphery_blend.py``; about 8 minutes on
-one thread, the reconstructions kept in ``runs/periphery-blend`` for a rerun. Writes
-``periphery-blend.md`` beside this file.
+``OMP_NUM_THREADS=1 PYTHONPATH=bench python training/cm2-mini-v3/periphery_blend.py``;
+about 8 minutes on one thread, the reconstructions kept in ``runs/periphery-blend`` for a
+rerun. Writes ``periphery-blend.md`` beside this file.
 """
 
 from __future__ import annotations
@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from svcode_core.config import SystemConfig
 from svcode_bench.regimes import regime_simulator
+from svcode_core.config import SystemConfig
 from svcode_core.evaluation.metrics import field_zones, psnr
 from svcode_core.methods.build import build_reconstructor
 from svcode_core.methods.periphery import REFINE_RANK, periphery_weight

@@ -11,8 +11,9 @@ the benchmark's centre and ring zones, and the 16-px edge strips against the col
 inside them. Unlike ``bench/ring_gap.py`` each scene is imaged in place only, so centre
 and ring hold different content; the question is what a refinement gains and loses.
 
-Usage (from the repository root): ``PYTHONPATH=bench python training/cm2-mini-v3/refine_probe.py``; about
-10 minutes on one thread. Writes ``refine-probe.md`` beside this file.
+Usage (from the repository root):
+``PYTHONPATH=bench python training/cm2-mini-v3/refine_probe.py``; about 10 minutes on one
+thread. Writes ``refine-probe.md`` beside this file.
 """
 
 from __future__ import annotations
@@ -23,8 +24,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from svcode_core.config import SystemConfig
 from svcode_bench.regimes import ADMM_RANK, SCENES, regime_simulator, scene_object
+from svcode_core.config import SystemConfig
 from svcode_core.evaluation.metrics import edge_columns, image_quality, psnr
 from svcode_core.methods.build import build_reconstructor
 from svcode_core.physics.cm2 import CM2Operator
