@@ -95,7 +95,7 @@ def precision_dtype(precision: str, method_name: str, reason: str = "") -> torch
                 f"{' (' + reason + ')' if reason else ''}; use {known}"
             )
         raise ValueError(f"precision: {precision!r} is not one of {known}")
-    return PRECISIONS.get(precision, torch.float32)  # "auto": the method resolves it itself
+    return PRECISIONS[precision]
 
 
 def native_bf16(device: torch.device) -> bool:

@@ -24,6 +24,7 @@ REFERENCE_LEVEL = 0.58
 ``cm2-mini`` model's training frames (0.576 over 32 of them, noisy, through their own
 instruments; the middle 80 % lie within 0.30–1.25)."""
 
+
 def exposure_level(frame: np.ndarray) -> float:
     """A frame's brightness, robust to hot pixels; ``exposure_level(s · x) == s ·
     exposure_level(x)`` for ``s > 0``.

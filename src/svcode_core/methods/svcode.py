@@ -105,6 +105,14 @@ def auto_precision(checks: dict[str, Any], device: str | torch.device) -> str:
     return "fp32"
 
 
+def _concrete(precision: str, model: torch.nn.Module | None, device: str | torch.device) -> str:
+    """``precision``, with ``"auto"`` resolved for ``model`` (its file's check) on
+    ``device``."""
+    if precision != "auto":
+        return precision
+    return auto_precision(getattr(model, "precision_check", {}), device)
+
+
 def features_in(model: torch.nn.Module, dtype: torch.dtype) -> torch.nn.Module:
     """A copy of an SV-CoDe ``model`` that computes its features in ``dtype``: every weight
     in ``dtype`` but the coordinate MLPs', which stay float32 (a coordinate needs float32's
@@ -213,8 +221,7 @@ def tile_plan(
     (16129, 3, 8)
     """
     planned_batch = 8
-    if precision == "auto":
-        precision = auto_precision(getattr(model, "precision_check", {}), device)
+    precision = _concrete(precision, model, device)
     if tile_size is None and hasattr(model, "working_bytes_per_pixel"):
         tile_size, planned, planned_batch = plan_tiles(
             model, system.sub_view_size, tile_memory_bytes, PRECISIONS[precision]
@@ -345,9 +352,8 @@ class Reconstructor(BaseReconstructor):
             raise TypeError(f"system must be a SystemConfig, got {type(system).__name__}")
         self.system = system.validate()
         self.device = resolve_device(device)
+        precision = _concrete(precision, model, self.device)
         precision_dtype(precision, self.method)
-        if precision == "auto":
-            precision = auto_precision(getattr(model, "precision_check", {}), self.device)
         if precision == "fp16" and self.device.type == "cpu":
             raise ValueError("precision: fp16 is not supported on the CPU; use bf16 or fp32")
         self.precision = precision

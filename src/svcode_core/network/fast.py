@@ -143,7 +143,8 @@ def _conv(conv: nn.Conv2d, x: torch.Tensor) -> torch.Tensor:
 
 
 def _mask_dtype(device: torch.device, default: torch.dtype) -> torch.dtype:
-    """The dtype masks are stored and applied in: autocast's, else the parameters'."""
+    """The dtype masks are stored and applied in: autocast's, else ``default`` (the
+    features')."""
     if torch.is_autocast_enabled(device.type):
         return torch.get_autocast_dtype(device.type)
     return default
