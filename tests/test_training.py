@@ -406,16 +406,21 @@ def test_the_best_model_file_records_its_bf16_check(tiny_data, tmp_path, monkeyp
     """With bf16 units the best epoch is validated again in bf16 and the PSNR it loses is
     written into best.safetensors, which precision="auto" reads; without them, nothing."""
     from svcode_core.methods.model_file import read_model_metadata
+    from svcode_core.methods.svcode import features_in
+    from svcode_core.training import trainer as module
 
-    monkeypatch.setattr("svcode_core.training.trainer.native_bf16", lambda device: native)
+    copies = []  # on the CPU the check runs the network as reconstructions do: features_in
+    monkeypatch.setattr(module, "features_in", lambda *a: copies.append(a) or features_in(*a))
+    monkeypatch.setattr(module, "native_bf16", lambda device: native)
     trainer = _trainer(tiny_data, tmp_path, epochs=1)
     trainer.fit()
+    assert len(copies) == int(native)
     extra = read_model_metadata(tmp_path / "best.safetensors")["extra"]
     if not native:
         assert "precision_check" not in extra
         return
     fp32 = trainer.best["val_recon_psnr"]
-    bf16 = trainer.validate(autocast=True)["val_recon_psnr"]
+    bf16 = trainer.validate(bf16=True)["val_recon_psnr"]
     assert extra["precision_check"]["bf16"]["loss_db"] == pytest.approx(fp32 - bf16, abs=1e-4)
     assert "4 validation patches" in extra["precision_check"]["bf16"]["measured_on"]
 

@@ -72,8 +72,8 @@ from .tiling import (
     tiles_with_signal,
 )
 
-__all__ = ["AUTO_TOLERANCE_DB", "Reconstructor", "TilePlan", "auto_precision", "features_in",
-           "plan_tiles", "tile_plan"]
+__all__ = ["AUTO_TOLERANCE_DB", "Reconstructor", "TilePlan", "auto_precision", "bf16_features",
+           "features_in", "plan_tiles", "tile_plan"]
 
 _SVCODE = registry.method("svcode")
 _DEFAULTS = _SVCODE.defaults
@@ -111,6 +111,12 @@ def _concrete(precision: str, model: torch.nn.Module | None, device: str | torch
     if precision != "auto":
         return precision
     return auto_precision(getattr(model, "precision_check", {}), device)
+
+
+def bf16_features(device: torch.device) -> bool:
+    """Whether SV-CoDe runs in bf16 on ``device`` with its features in bf16
+    (:func:`features_in`, on the CPU) rather than under autocast (elsewhere)."""
+    return device.type == "cpu"
 
 
 def features_in(model: torch.nn.Module, dtype: torch.dtype) -> torch.nn.Module:
@@ -369,9 +375,8 @@ class Reconstructor(BaseReconstructor):
             raise ValueError(f"skip_factor must be a finite number >= 0, got {skip_factor!r}")
         self.skip_empty = skip_empty
         self.skip_threshold = system.noise.dark_offset + skip_factor * noise_floor(system.noise)
-        # bf16 on the CPU: the features themselves in bf16 (features_in), not autocast
         self._features = None
-        if precision == "bf16" and self.device.type == "cpu" and hasattr(model, "_gates"):
+        if precision == "bf16" and bf16_features(self.device) and hasattr(model, "_gates"):
             model, self._features = features_in(model, torch.bfloat16), torch.bfloat16
         self.model = model.to(self.device).eval()
         config = getattr(model, "model_config", None)

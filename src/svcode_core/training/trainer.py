@@ -26,9 +26,10 @@ continues exactly as the uninterrupted run would (on the same device and thread 
 The training steps' forward pass runs under bf16 autocast on CUDA, and on any device with
 ``precision="bf16"``; the loss is always computed in float32, and validation runs in
 float32, so that runs in either precision are scored alike. On a device with bf16 units,
-an SV-CoDe model's best epoch is validated once more under bf16 autocast, and the PSNR it
-loses is written into ``best.safetensors`` (``precision_check``): reconstructions with
-``precision="auto"`` run such a model in bf16 when the loss is at most 0.05 dB.
+an SV-CoDe model's best epoch is validated once more in bf16, as reconstructions run it
+there, and the PSNR it loses is written into ``best.safetensors`` (``precision_check``):
+reconstructions with ``precision="auto"`` run such a model in bf16 when the loss is at most
+0.05 dB.
 """
 
 from __future__ import annotations
@@ -54,6 +55,7 @@ from ..io import atomic_path, write_text_atomic
 from ..methods.base import native_bf16
 from ..methods.learned import FourierNetConfig, MultiWienerConfig
 from ..methods.model_file import load_model, save_model
+from ..methods.svcode import bf16_features, features_in
 from ..network import ModelConfig, SVCoDe, with_lens_context
 from ..network.compiled import compile_model
 from .dataset import TrainingData
@@ -331,19 +333,25 @@ class Trainer:
         return self.device if on_gpu else torch.device("cpu")
 
     @torch.no_grad()
-    def validate(self, autocast: bool = False) -> dict[str, float]:
+    def validate(self, bf16: bool = False) -> dict[str, float]:
         """Loss, PSNR and SSIM of every stage (:attr:`metrics`) on the fixed validation
         samples (fixed noise), averaged over samples and processes; the forward pass in
-        float32, or under bf16 autocast."""
+        float32, or in bf16 as an SV-CoDe reconstruction runs it on this device (the
+        features in bf16 on the CPU, autocast elsewhere)."""
         self.model.eval()
+        net, features, autocast = self.model, None, bf16
+        if bf16 and self.task.unit == "patches" and bf16_features(self.device):
+            net, features, autocast = features_in(self.model, torch.bfloat16), torch.bfloat16, False
         names = self.metrics
         sums = torch.zeros(len(names) + 1, dtype=torch.float64)
         size = self.config.batch_size
-        with self.task.evaluating(self.model):
+        with self.task.evaluating(net):
             for start in range(0, len(self.val_indices), size):
                 items = [self.val_set[i] for i in self.val_indices[start : start + size]]
                 batch = self._to_device(self.task.collate(items))
-                stages = self._forward(self.model, batch, autocast)
+                if features is not None:
+                    batch["views"] = batch["views"].to(features)
+                stages = self._forward(net, batch, autocast)
                 loss, _ = joint_loss(stages, self.config.alpha, self.config.beta,
                                      self._loss_weights(batch))
                 n = len(items)
@@ -425,12 +433,12 @@ class Trainer:
         }
 
     def _bf16_check(self) -> dict[str, float]:
-        """SV-CoDe on a device with bf16 units: the validation reconstruction PSNR under
-        bf16 autocast, from which the model file's ``precision_check`` is written (what
-        ``precision="auto"`` reads when reconstructing); else nothing."""
+        """SV-CoDe on a device with bf16 units: the validation reconstruction PSNR in bf16
+        (as reconstructions run it), from which the model file's ``precision_check`` is
+        written (what ``precision="auto"`` reads when reconstructing); else nothing."""
         if self.task.unit != "patches" or not native_bf16(self.device):
             return {}
-        return {"val_recon_psnr_bf16": self.validate(autocast=True)["val_recon_psnr"]}
+        return {"val_recon_psnr_bf16": self.validate(bf16=True)["val_recon_psnr"]}
 
     def _save_best(self) -> None:
         extra = {**self._metadata(), "epoch": self.best["epoch"], "metrics": self.best}
