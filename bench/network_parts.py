@@ -106,16 +106,18 @@ def frame_workload(precision: str):
     return lambda: rec(frame)
 
 
-def train_workload(precision: str, compiled: bool = False):
-    """One training step of the bundled network, its forward under bf16 autocast for
+def train_workload(precision: str, compiled: bool = False, weights: str | None = None,
+                   patch: int = 96, batch: int = 8):
+    """One training step of a model file's network (the bundled cm2-mini one by default)
+    on ``batch`` patches of ``patch`` px at one origin, its forward under bf16 autocast for
     ``bf16`` and compiled as ``svcode train --compile`` does when ``compiled``."""
-    model, system = load_model(bundled_weights("cm2-mini"))
+    model, system = load_model(weights or bundled_weights("cm2-mini"))
     model.train()
-    net = compile_model(model) if compiled else model
+    net = compile_model(model, precision == "bf16") if compiled else model
     optimizer = torch.optim.Adam(model.parameters(), 1e-4)
     channels = model.demix.intro.in_channels
-    views = torch.rand(8, channels, 96, 96)
-    origins = torch.tensor([[48, 96]] * 8)
+    views = torch.rand(batch, channels, patch, patch)
+    origins = torch.tensor([[48, 96]] * batch)
 
     def step():
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=precision == "bf16"):

@@ -9,7 +9,10 @@ Learning curves: ``--runs A B ...`` names run folders of ``svcode train`` that d
 in ``--precision`` / ``--compile``, run side by side (one thread each), and quotes their
 first epochs from ``log.csv``.
 
-Results go to bench/results/training_speed.json and training_speed.md.
+Another network: ``--weights FILE --patch P --batch B`` (steps only), e.g. the cm2-v2
+arm's on one 384-px patch; its results are named after the file's system.
+
+Results go to bench/results/training_speed[_SYSTEM].json and .md.
 Run: ``python bench/training_speed.py [--runs runs/p43-fp32 runs/p43-bf16c]`` (quiet).
 """
 
@@ -18,6 +21,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import math
 import statistics
 import subprocess
 import sys
@@ -26,26 +30,56 @@ from pathlib import Path
 
 import torch
 
+from svcode_core.methods.model_file import load_model, read_model_metadata
+from svcode_core.network.compiled import compile_model
+from svcode_core.pretrained import bundled_weights
 from svcode_core.run.allocator import reuse_freed_memory
 
 RESULTS = Path(__file__).parent / "results"
 SETTINGS = (("fp32", False), ("bf16", False), ("fp32", True), ("bf16", True))
 
 
-def measure(precision: str, compiled: bool, steps: int = 5) -> dict:
-    """Seconds per step in this process (median of ``steps`` after the first)."""
+def gradient_error(precision: str, workload: dict) -> float:
+    """Relative L2 difference between the compiled and the eager gradients of one step
+    (same weights, same patches); NaN when the compiled ones are not finite."""
+    from network_parts import DTYPES
+
+    model, system = load_model(workload["weights"] or bundled_weights("cm2-mini"))
+    model.train()
+    views = torch.rand(workload["batch"], model.demix.intro.in_channels, workload["patch"],
+                       workload["patch"], generator=torch.Generator().manual_seed(0))
+    origins = torch.tensor([[48, 96]] * workload["batch"])
+
+    def gradients(net: torch.nn.Module) -> torch.Tensor:
+        model.zero_grad(set_to_none=True)
+        with torch.autocast("cpu", dtype=DTYPES[precision], enabled=precision != "fp32"):
+            demixed, recon = net(views, origins, system.sub_view_size)
+        (demixed.float().square().mean() + recon.float().square().mean()).backward()
+        return torch.cat([p.grad.flatten() for p in model.parameters()])
+
+    eager = gradients(model)
+    compiled = gradients(compile_model(model, precision == "bf16"))
+    if not torch.isfinite(compiled).all():
+        return math.nan
+    return float((compiled - eager).norm() / eager.norm())
+
+
+def measure(precision: str, compiled: bool, workload: dict, steps: int = 5) -> dict:
+    """Seconds per step in this process (median of ``steps`` after the first); compiled,
+    also the gradients' difference from eager (:func:`gradient_error`)."""
     from network_parts import train_workload
 
     torch.set_num_threads(1)
     reuse_freed_memory()
-    step = train_workload(precision, compiled)
+    error = gradient_error(precision, workload) if compiled else 0.0
+    step = train_workload(precision, compiled, **workload)
     times = []
     for _ in range(steps + 1):
         start = time.perf_counter()
         step()
         times.append(time.perf_counter() - start)
     return {"precision": precision, "compile": compiled, "first_s": times[0],
-            "step_s": statistics.median(times[1:])}
+            "step_s": statistics.median(times[1:]), "gradient_error": error}
 
 
 def epochs(run: Path) -> list[dict]:
@@ -57,15 +91,22 @@ def epochs(run: Path) -> list[dict]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--runs", nargs="*", type=Path, default=[])
+    parser.add_argument("--weights", help="model file (default: the bundled cm2-mini)")
+    parser.add_argument("--patch", type=int, default=96)
+    parser.add_argument("--batch", type=int, default=8)
     parser.add_argument("--one", nargs=2, help=argparse.SUPPRESS)
     args = parser.parse_args()
+    workload = {"weights": args.weights, "patch": args.patch, "batch": args.batch}
     if args.one:
-        print(json.dumps(measure(args.one[0], args.one[1] == "compile")))
+        print(json.dumps(measure(args.one[0], args.one[1] == "compile", workload)))
         return
+    passed = ["--patch", str(args.patch), "--batch", str(args.batch)]
+    if args.weights:
+        passed += ["--weights", args.weights]
     rows = []
     for precision, compiled in SETTINGS:
         out = subprocess.run([sys.executable, __file__, "--one", precision,
-                              "compile" if compiled else "eager"],
+                              "compile" if compiled else "eager", *passed],
                              check=True, capture_output=True, text=True)
         rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
         print(rows[-1], flush=True)
@@ -74,11 +115,17 @@ def main() -> None:
         config = json.loads((run / "log.json").read_text())["train_config"]
         curves[run.name] = {"precision": config.get("precision", "auto"),
                             "compile": config.get("compile", False), "epochs": epochs(run)}
+    name = "training_speed"
+    if args.weights:
+        name += "_" + read_model_metadata(args.weights)["system"].name
+        what = f"`{args.weights}`'s network"
+    else:
+        what = "the bundled cm2-mini network"
     RESULTS.mkdir(exist_ok=True)
-    report = {"steps": rows, "curves": curves}
-    (RESULTS / "training_speed.json").write_text(json.dumps(report, indent=2) + "\n")
-    (RESULTS / "training_speed.md").write_text(markdown(report))
-    print((RESULTS / "training_speed.md").read_text())
+    report = {"steps": rows, "curves": curves, "network": what, **workload}
+    (RESULTS / f"{name}.json").write_text(json.dumps(report, indent=2) + "\n")
+    (RESULTS / f"{name}.md").write_text(markdown(report))
+    print((RESULTS / f"{name}.md").read_text())
 
 
 def markdown(report: dict) -> str:
@@ -86,16 +133,22 @@ def markdown(report: dict) -> str:
     lines = [
         "# Training throughput on a CPU",
         "",
-        "Generated by `bench/training_speed.py`: one training step of the bundled cm2-mini "
-        "network (8 × 96² patches at one origin, forward, loss, backward, Adam), one "
-        "thread, each setting in a fresh process; *first step* includes compiling.",
+        f"Generated by `bench/training_speed.py`: one training step of "
+        f"{report.get('network', 'the bundled cm2-mini network')} "
+        f"({report.get('batch', 8)} × {report.get('patch', 96)}² patches at one origin, "
+        "forward, loss, backward, Adam), one thread, each setting in a fresh process; "
+        "*first step* includes compiling (after the gradient check, so from a warm "
+        "cache); *gradients*: the compiled step's relative L2 difference from eager on the "
+        "same patches (NaN: not finite).",
         "",
-        "| precision | compiled | first step s | step s | speed vs fp32 eager |",
-        "|---|---|---|---|---|",
+        "| precision | compiled | first step s | step s | speed vs fp32 eager | gradients |",
+        "|---|---|---|---|---|---|",
     ]
     for r in report["steps"]:
+        error = r.get("gradient_error")
         lines.append(f"| {r['precision']} | {'yes' if r['compile'] else 'no'} | "
-                     f"{r['first_s']:.1f} | {r['step_s']:.3f} | {base / r['step_s']:.2f}× |")
+                     f"{r['first_s']:.1f} | {r['step_s']:.3f} | {base / r['step_s']:.2f}× | "
+                     f"{'–' if not r['compile'] or error is None else f'{error:.1e}'} |")
     if report["curves"]:
         lines += [
             "",

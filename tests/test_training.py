@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 
 import numpy as np
 import pytest
@@ -383,6 +384,19 @@ def test_one_step_lowers_the_loss_on_a_fixed_batch(tiny_data, tmp_path):
     step = trainer.train_step(batch)
     assert step["loss"] == pytest.approx(before, rel=1e-5)
     assert loss() < before
+
+
+def test_non_finite_gradients_stop_training_before_the_update(tiny_data, tmp_path):
+    """A step whose gradients are not finite (the loss itself finite) raises and leaves
+    the weights as they were: nothing diverged is written over a sound model."""
+    trainer = _trainer(tiny_data, tmp_path, compile=False)
+    batch = trainer.task.collate([trainer.val_set[i] for i in range(2)])
+    before = {k: v.clone() for k, v in trainer.model.state_dict().items()}
+    trainer.model.demix.intro.weight.register_hook(lambda grad: grad * math.nan)
+    with pytest.raises(FloatingPointError, match="gradients became non-finite at step 0"):
+        trainer.train_step(batch)
+    after = trainer.model.state_dict()
+    assert all(torch.equal(before[k], after[k]) for k in before)
 
 
 def test_bf16_training_step_runs_the_forward_in_bf16(tiny_data, tmp_path):

@@ -19,11 +19,18 @@ from .fast import FoldedMasks
 __all__ = ["compile_model"]
 
 
-def compile_model(model: nn.Module) -> nn.Module:
+def compile_model(model: nn.Module, bf16_on_cpu: bool = False) -> nn.Module:
     """``torch.compile(model, dynamic=False)`` with the coordinate masks computed eagerly.
 
     ``model`` is an SV-CoDe model (or a wrapper of one, e.g. DistributedDataParallel) or
-    any other module; every call should bring inputs of one shape (one graph)."""
+    any other module; every call should bring inputs of one shape (one graph).
+    ``bf16_on_cpu``: the graph will run under bf16 autocast on a CPU. Its code is then
+    generated with 256-bit vectors: torch 2.13's 512-bit (AVX-512) code for SV-CoDe's bf16
+    training step computes the forward pass right but returns non-finite gradients."""
+    if bf16_on_cpu:
+        from torch._inductor import config
+
+        config.cpp.simdlen = 256
     for cls, name in ((TiledModel, "masks_for"), (FoldedMasks, "tile_masks")):
         method = getattr(cls, name)
         if not getattr(method, "_eager_beside_graph", False):

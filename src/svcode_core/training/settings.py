@@ -88,7 +88,9 @@ class TrainConfig:
         on others); the loss, the weights and validation stay float32.
     compile : bool
         Run the training steps through :func:`torch.compile` (needs a C++ compiler on the
-        CPU; the first step compiles for minutes, validation runs uncompiled).
+        CPU; the first step compiles for minutes, validation runs uncompiled). On a CPU
+        it pays in float32; a bf16 step is compiled with 256-bit vectors
+        (:func:`~svcode_core.network.compiled.compile_model`) and is slower.
     patch_size : int or None
         SV-CoDe's training and validation patch side, on a grid of half that stride;
         ``None``: the system's ``patch_size`` and ``patch_stride``. Not for the learned

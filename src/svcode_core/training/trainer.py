@@ -212,7 +212,8 @@ class Trainer:
                                "or the one named by CXX); install one or train without "
                                "compiling")
         # one shape per step (drop_last), so one graph; validation stays uncompiled
-        self.train_net = compile_model(self.net) if config.compile else self.net
+        bf16_on_cpu = self.autocast and self.device.type == "cpu"
+        self.train_net = compile_model(self.net, bf16_on_cpu) if config.compile else self.net
 
         self.train_set = self.task.dataset(data, data.train_frames, False, config.seed,
                                            photon_range=tuple(config.photon_range),
@@ -284,7 +285,8 @@ class Trainer:
         Raises
         ------
         FloatingPointError
-            If the loss is NaN or infinite (training diverged; lower the learning rate).
+            If the loss or its gradients are NaN or infinite (training diverged; lower
+            the learning rate); the weights are left as they were.
         """
         batch = self._to_device(batch)
         self.net.train()
@@ -300,6 +302,12 @@ class Trainer:
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.config.grad_clip)
+        if not math.isfinite(float(grad_norm)):  # before the update: the weights stay sound
+            raise FloatingPointError(
+                f"the gradients became non-finite at step {self.global_step} (the loss was "
+                f"{value:.4g}): training diverged; lower --lr"
+                + (", or train without --compile" if self.config.compile else "")
+            )
         self.optimizer.step()
         self.scheduler.step()
         self.global_step += 1
