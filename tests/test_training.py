@@ -448,6 +448,12 @@ def test_resume_may_change_compile_but_not_precision(tiny_data, tmp_path, monkey
         _trainer(tiny_data, tmp_path, precision="bf16").fit(resume=True)
 
 
+def test_bf16_compiled_on_a_cpu_is_warned_about(tiny_data, tmp_path, monkeypatch):
+    monkeypatch.setattr("svcode_core.training.trainer._cxx_compiler", lambda: "c++")
+    with pytest.warns(UserWarning, match="train in float32 with --compile"):
+        _trainer(tiny_data, tmp_path, compile=True, precision="bf16")
+
+
 def test_compile_without_a_cxx_compiler_is_refused_at_once(tiny_data, tmp_path, monkeypatch):
     from torch._inductor import config
 
