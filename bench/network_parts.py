@@ -106,25 +106,36 @@ def frame_workload(precision: str):
     return lambda: rec(frame)
 
 
-def train_workload(precision: str, compiled: bool = False, weights: str | None = None,
-                   patch: int = 96, batch: int = 8):
-    """One training step of a model file's network (the bundled cm2-mini one by default)
-    on ``batch`` patches of ``patch`` px at one origin, its forward under bf16 autocast for
-    ``bf16`` and compiled as ``svcode train --compile`` does when ``compiled``."""
+def training_batch(weights: str | None = None, patch: int = 96, batch: int = 8):
+    """A model file's network (the bundled cm2-mini one by default) in training mode and
+    a fixed batch of ``batch`` patches of ``patch`` px at one origin; returns
+    ``(model, loss)`` where ``loss(net, precision)`` is the batch's loss through ``net``
+    (the model or a compiled copy), its forward under bf16 autocast for ``bf16``."""
     model, system = load_model(weights or bundled_weights("cm2-mini"))
     model.train()
-    net = compile_model(model, precision == "bf16") if compiled else model
-    optimizer = torch.optim.Adam(model.parameters(), 1e-4)
-    channels = model.demix.intro.in_channels
-    views = torch.rand(batch, channels, patch, patch)
+    views = torch.rand(batch, model.demix.intro.in_channels, patch, patch,
+                       generator=torch.Generator().manual_seed(0))
     origins = torch.tensor([[48, 96]] * batch)
 
-    def step():
+    def loss(net: torch.nn.Module, precision: str) -> torch.Tensor:
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=precision == "bf16"):
             demixed, recon = net(views, origins, system.sub_view_size)
-        loss = demixed.float().square().mean() + recon.float().square().mean()
+        return demixed.float().square().mean() + recon.float().square().mean()
+
+    return model, loss
+
+
+def train_workload(precision: str, compiled: bool = False, weights: str | None = None,
+                   patch: int = 96, batch: int = 8):
+    """One training step on :func:`training_batch`, Adam, compiled as ``svcode train
+    --compile`` does when ``compiled``."""
+    model, loss = training_batch(weights, patch, batch)
+    net = compile_model(model, precision == "bf16") if compiled else model
+    optimizer = torch.optim.Adam(model.parameters(), 1e-4)
+
+    def step():
         optimizer.zero_grad()
-        loss.backward()
+        loss(net, precision).backward()
         optimizer.step()
 
     return step

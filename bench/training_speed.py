@@ -30,9 +30,8 @@ from pathlib import Path
 
 import torch
 
-from svcode_core.methods.model_file import load_model, read_model_metadata
+from svcode_core.methods.model_file import read_model_metadata
 from svcode_core.network.compiled import compile_model
-from svcode_core.pretrained import bundled_weights
 from svcode_core.run.allocator import reuse_freed_memory
 
 RESULTS = Path(__file__).parent / "results"
@@ -42,19 +41,13 @@ SETTINGS = (("fp32", False), ("bf16", False), ("fp32", True), ("bf16", True))
 def gradient_error(precision: str, workload: dict) -> float:
     """Relative L2 difference between the compiled and the eager gradients of one step
     (same weights, same patches); NaN when the compiled ones are not finite."""
-    from network_parts import DTYPES
+    from network_parts import training_batch
 
-    model, system = load_model(workload["weights"] or bundled_weights("cm2-mini"))
-    model.train()
-    views = torch.rand(workload["batch"], model.demix.intro.in_channels, workload["patch"],
-                       workload["patch"], generator=torch.Generator().manual_seed(0))
-    origins = torch.tensor([[48, 96]] * workload["batch"])
+    model, loss = training_batch(**workload)
 
     def gradients(net: torch.nn.Module) -> torch.Tensor:
         model.zero_grad(set_to_none=True)
-        with torch.autocast("cpu", dtype=DTYPES[precision], enabled=precision != "fp32"):
-            demixed, recon = net(views, origins, system.sub_view_size)
-        (demixed.float().square().mean() + recon.float().square().mean()).backward()
+        loss(net, precision).backward()
         return torch.cat([p.grad.flatten() for p in model.parameters()])
 
     eager = gradients(model)

@@ -419,12 +419,13 @@ def test_bf16_training_step_runs_the_forward_in_bf16(tiny_data, tmp_path):
 def test_the_best_model_file_records_its_bf16_check(tiny_data, tmp_path, monkeypatch, native):
     """With bf16 units the best epoch is validated again in bf16 and the PSNR it loses is
     written into best.safetensors, which precision="auto" reads; without them, nothing."""
+    from svcode_core.methods import svcode
     from svcode_core.methods.model_file import read_model_metadata
-    from svcode_core.methods.svcode import features_in
     from svcode_core.training import trainer as module
 
     copies = []  # on the CPU the check runs the network as reconstructions do: features_in
-    monkeypatch.setattr(module, "features_in", lambda *a: copies.append(a) or features_in(*a))
+    features_in = svcode.features_in
+    monkeypatch.setattr(svcode, "features_in", lambda *a: copies.append(a) or features_in(*a))
     monkeypatch.setattr(module, "native_bf16", lambda device: native)
     trainer = _trainer(tiny_data, tmp_path, epochs=1)
     trainer.fit()

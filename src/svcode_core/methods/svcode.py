@@ -72,7 +72,7 @@ from .tiling import (
     tiles_with_signal,
 )
 
-__all__ = ["AUTO_TOLERANCE_DB", "Reconstructor", "TilePlan", "auto_precision", "bf16_features",
+__all__ = ["AUTO_TOLERANCE_DB", "Reconstructor", "TilePlan", "auto_precision", "bf16_network",
            "features_in", "plan_tiles", "tile_plan"]
 
 _SVCODE = registry.method("svcode")
@@ -113,10 +113,15 @@ def _concrete(precision: str, model: torch.nn.Module | None, device: str | torch
     return auto_precision(getattr(model, "precision_check", {}), device)
 
 
-def bf16_features(device: torch.device) -> bool:
-    """Whether SV-CoDe runs in bf16 on ``device`` with its features in bf16
-    (:func:`features_in`, on the CPU) rather than under autocast (elsewhere)."""
-    return device.type == "cpu"
+def bf16_network(
+    model: torch.nn.Module, device: torch.device
+) -> tuple[torch.nn.Module, torch.dtype | None]:
+    """How ``model`` runs in bf16 on ``device``: an SV-CoDe model on the CPU as its bf16
+    copy (:func:`features_in`), fed bf16 inputs (returned: the copy and ``torch.bfloat16``);
+    anything else as it is, under autocast (returned: ``model`` and ``None``)."""
+    if device.type == "cpu" and hasattr(model, "_gates"):
+        return features_in(model, torch.bfloat16), torch.bfloat16
+    return model, None
 
 
 def features_in(model: torch.nn.Module, dtype: torch.dtype) -> torch.nn.Module:
@@ -376,8 +381,8 @@ class Reconstructor(BaseReconstructor):
         self.skip_empty = skip_empty
         self.skip_threshold = system.noise.dark_offset + skip_factor * noise_floor(system.noise)
         self._features = None
-        if precision == "bf16" and bf16_features(self.device) and hasattr(model, "_gates"):
-            model, self._features = features_in(model, torch.bfloat16), torch.bfloat16
+        if precision == "bf16":
+            model, self._features = bf16_network(model, self.device)
         self.model = model.to(self.device).eval()
         config = getattr(model, "model_config", None)
         self._crop_views = (

@@ -24,9 +24,10 @@ def compile_model(model: nn.Module, bf16_on_cpu: bool = False) -> nn.Module:
 
     ``model`` is an SV-CoDe model (or a wrapper of one, e.g. DistributedDataParallel) or
     any other module; every call should bring inputs of one shape (one graph).
-    ``bf16_on_cpu``: the graph will run under bf16 autocast on a CPU. Its code is then
-    generated with 256-bit vectors: torch 2.13's 512-bit (AVX-512) code for SV-CoDe's bf16
-    training step computes the forward pass right but returns non-finite gradients."""
+    ``bf16_on_cpu``: the graph will run under bf16 autocast on a CPU. Code is then
+    generated with 256-bit vectors (torch's inductor setting, for the whole process):
+    torch 2.13's 512-bit (AVX-512) code for SV-CoDe's bf16 training step computes the
+    forward pass right but returns non-finite gradients."""
     if bf16_on_cpu:
         from torch._inductor import config
 

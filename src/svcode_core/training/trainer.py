@@ -56,7 +56,7 @@ from ..io import atomic_path, write_text_atomic
 from ..methods.base import native_bf16
 from ..methods.learned import FourierNetConfig, MultiWienerConfig
 from ..methods.model_file import load_model, save_model
-from ..methods.svcode import bf16_features, features_in
+from ..methods.svcode import bf16_network
 from ..network import ModelConfig, SVCoDe, with_lens_context
 from ..network.compiled import compile_model
 from .dataset import TrainingData
@@ -352,9 +352,8 @@ class Trainer:
         float32, or in bf16 as an SV-CoDe reconstruction runs it on this device (the
         features in bf16 on the CPU, autocast elsewhere)."""
         self.model.eval()
-        net, features, autocast = self.model, None, bf16
-        if bf16 and self.task.unit == "patches" and bf16_features(self.device):
-            net, features, autocast = features_in(self.model, torch.bfloat16), torch.bfloat16, False
+        net, features = bf16_network(self.model, self.device) if bf16 else (self.model, None)
+        autocast = bf16 and features is None
         names = self.metrics
         sums = torch.zeros(len(names) + 1, dtype=torch.float64)
         size = self.config.batch_size
