@@ -63,6 +63,37 @@ def test_max_width_caps_the_levels_and_leaves_uncapped_models_as_they_were():
         ModelConfig.mini().replace(max_width=8).validate()
 
 
+def test_pixel_unshuffle_runs_each_stage_on_a_coarser_grid():
+    """``pixel_unshuffle = f``: each stage's first convolution takes ``f²`` channels per
+    crop and its last gives ``f²`` per output, the stride and receptive radius grow by
+    ``f``, and the masks are those of the sub-view's level ``log2 f`` (coordinates of the
+    pooled grid, so a coarse model's level k is a fine one's level k + 1)."""
+    from svcode_core.network.masks import coordinate_grids
+
+    fine = ModelConfig.mini().replace(lens_context=True)
+    coarse = fine.replace(pixel_unshuffle=2)
+    assert ModelConfig.from_json(coarse.to_json()) == coarse
+    model, plain = _model(coarse), _model(fine)
+    assert model.demix.intro.in_channels == 4 * plain.demix.intro.in_channels == 4 * 81
+    assert model.recon.intro.in_channels == 4 and model.demix.ending.out_channels == 4 * 9
+    assert model.stride == 2 * plain.stride
+    assert model.receptive_radius() == 2 * plain.receptive_radius() + 2  # + (f - 1) a stage
+    demixed, recon = model(torch.rand(2, 81, 40, 37), [[0, 0], [100, 48]], 384)
+    assert demixed.shape == (2, 9, 40, 37) and recon.shape == (2, 1, 40, 37)
+
+    def encode(t):
+        return positional_encoding(t, 4, "code")
+
+    origins = torch.tensor([[0, 0], [96, 40]])
+    shifted = coordinate_grids(encode, origins, 384, (64, 64), 3, first=1)
+    pooled = coordinate_grids(encode, origins, 384, (64, 64), 4)[1:]
+    for a, b in zip(shifted, pooled, strict=True):
+        assert torch.equal(a.enc_row, b.enc_row) and torch.equal(a.enc_col, b.enc_col)
+    for bad in (3, 0, True):
+        with pytest.raises(ConfigError, match="pixel_unshuffle"):
+            fine.replace(pixel_unshuffle=bad)
+
+
 def test_config_json_round_trip_and_errors():
     config = ModelConfig.mini().replace(pe_scheme="paper", positional_encoding=False)
     assert ModelConfig.from_json(config.to_json()) == config

@@ -11,17 +11,19 @@ import textwrap
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 
 from svcode_core import Reconstructor, SystemConfig
 from svcode_core.network import ModelConfig, SVCoDe
 
 
-def lattice_model(seed: int = 0) -> SVCoDe:
+def lattice_model(seed: int = 0, pixel_unshuffle: int = 1) -> SVCoDe:
     """An untrained model of the bundled model's kind (lens context, masks on an 8-pixel
     lattice) whose blocks are not the identity (β and γ start at 0 otherwise)."""
     torch.manual_seed(seed)
-    model = SVCoDe(ModelConfig.mini().replace(mask_spacing=8, lens_context=True))
+    config = ModelConfig.mini().replace(mask_spacing=8, lens_context=True)
+    model = SVCoDe(config.replace(pixel_unshuffle=pixel_unshuffle))
     with torch.no_grad():
         for name, param in model.named_parameters():
             if name.endswith(("beta", "gamma")):
@@ -29,20 +31,23 @@ def lattice_model(seed: int = 0) -> SVCoDe:
     return model
 
 
-def test_tiled_equals_whole_on_a_sub_view():
-    """cm2-mini's 384-pixel sub-views: one whole tile against nine 192-pixel tiles with the
-    planned overlap (64 > the 58-pixel receptive radius), channel attention pooled over
-    32 pixels. What differs is the windows cut at tile edges, weighted down by the
-    blending window: at most 1e-3 of the peak (measured 1.1e-4)."""
+@pytest.mark.parametrize(("unshuffle", "tile", "stride", "tiles"), [(1, 192, 128, 9),
+                                                                    (2, 256, 128, 4)])
+def test_tiled_equals_whole_on_a_sub_view(unshuffle, tile, stride, tiles):
+    """cm2-mini's 384-pixel sub-views: one whole tile against 192-pixel tiles with the
+    planned overlap (64 > the 58-pixel receptive radius; for a model on a grid twice
+    coarser, 256-pixel tiles overlapping by 128 > 118), channel attention pooled over 32
+    pixels. What differs is the windows cut at tile edges, weighted down by the blending
+    window: at most 1e-3 of the peak (measured 1.1e-4)."""
     torch.set_num_threads(1)
     system = SystemConfig.preset("cm2-mini")
-    model = lattice_model()
+    model = lattice_model(pixel_unshuffle=unshuffle)
     frame = np.random.default_rng(0).random(system.sensor_shape, dtype=np.float32)
     options = {"pool_window": 32, "skip_empty": False, "mask_cache_bytes": 0}
     whole = Reconstructor(model, system, **options)
-    tiled = Reconstructor(model, system, tile_size=192, stride=128, **options)
-    assert len(whole.grid) == 1 and len(tiled.grid) == 9
-    assert 192 - 128 >= model.receptive_radius()
+    tiled = Reconstructor(model, system, tile_size=tile, stride=stride, **options)
+    assert len(whole.grid) == 1 and len(tiled.grid) == tiles
+    assert tile - stride >= model.receptive_radius()
     reference = whole(frame).reconstruction
     out = tiled(frame).reconstruction
     assert np.abs(out - reference).max() <= 1e-3 * np.abs(reference).max()

@@ -230,12 +230,13 @@ def test_moved_chief_rays_cut_the_same_sub_views_for_the_same_model(tiny_system,
     assert not np.allclose(at_moved.reconstruct(frame).reconstruction, expected.reconstruction)
 
 
-def test_a_lens_context_model_gets_the_crops_a_pitch_away(tiny_system):
+@pytest.mark.parametrize("unshuffle", [1, 2])
+def test_a_lens_context_model_gets_the_crops_a_pitch_away(tiny_system, unshuffle):
     from svcode_core.network import ModelConfig, SVCoDe, with_lens_context
     from svcode_core.physics.geometry import context_views
 
     torch.manual_seed(0)
-    plain = SVCoDe(ModelConfig.mini())
+    plain = SVCoDe(ModelConfig.mini().replace(pixel_unshuffle=unshuffle))
     frame = np.random.default_rng(0).random(tiny_system.sensor_shape, dtype=np.float32)
     wide = Reconstructor(with_lens_context(plain), tiny_system)
     crops = wide.prepare(frame)

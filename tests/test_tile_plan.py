@@ -15,7 +15,8 @@ from svcode_core.phantoms import make_object
 from svcode_core.physics.simulate import Simulator
 
 
-@pytest.mark.parametrize("config", [ModelConfig.mini(), ModelConfig.reference()])
+@pytest.mark.parametrize("config", [ModelConfig.mini(), ModelConfig.reference(),
+                                    ModelConfig.mini().replace(pixel_unshuffle=2, width=32)])
 def test_plan_fits_the_budget_and_overlaps_by_the_receptive_radius(config):
     model = SVCoDe(config)
     per_pixel, step = model.working_bytes_per_pixel(), model.stride

@@ -107,16 +107,18 @@ class TiledModel(nn.Module):
         if not self._gates:
             return None
         levels, spacing = self._levels(), self.model_config.mask_spacing
+        first = self.model_config.coarse_levels
         if not self.fast_masks:
-            return PlainMasks(
-                coordinate_grids(self._encode, origins, sub_view_size, shape, levels, spacing)
+            grids = coordinate_grids(
+                self._encode, origins, sub_view_size, shape, levels, spacing, first=first
             )
+            return PlainMasks(grids)
         cache = self._mask_cache if not torch.is_grad_enabled() else None
         if cache is not None:
             cache.check_weights(self._weights_key())
             cache.new_call()
         grids = coordinate_grids(
-            self._encode, origins, sub_view_size, shape, levels, spacing, cache
+            self._encode, origins, sub_view_size, shape, levels, spacing, cache, first
         )
         return FastMasks(grids, self._block_names)
 
@@ -188,9 +190,10 @@ class TiledModel(nn.Module):
         a mask (with tile origins on multiples of the model stride); ``dtype`` is the
         compute dtype (the autocast dtype under autocast).
         """
-        cells = field_cells(sub_view_size, self._levels())
+        first = self.model_config.coarse_levels
+        cells = field_cells(sub_view_size, first + self._levels())
         return dtype.itemsize * sum(
-            6 * block.beta.shape[1] * block.conv1.mlp.lenses * (cells // 2**level) ** 2
+            6 * block.beta.shape[1] * block.conv1.mlp.lenses * (cells // 2 ** (first + level)) ** 2
             for block, level in self._masked_blocks
         )
 
@@ -215,31 +218,37 @@ class TiledModel(nn.Module):
 
     @property
     def stride(self) -> int:
-        """The model stride ``2**levels``: tile sides are padded to a multiple of it."""
-        return 2 ** self._levels()
+        """The model stride ``pixel_unshuffle · 2**levels``: tile sides are padded to a
+        multiple of it."""
+        return self.model_config.pixel_unshuffle * 2 ** self._levels()
 
     def working_bytes_per_pixel(self, dtype: torch.dtype = torch.float32) -> int:
         """An upper estimate of the inference working memory per tile pixel.
 
-        ``16 · (9 · view_width + width)`` values of ``dtype``: the nine views' features
-        and the fused features with the temporaries of a block and the U-Net skips.
-        Measured peaks (float32, one tile): ``ModelConfig.mini()`` 2.1–2.6 kB per pixel
-        against 3.3 kB estimated; ``ModelConfig.reference()`` 4.7 kB against 6.7 kB.
+        ``16 · (9 · view_width + width)`` values of ``dtype`` per network pixel (which is
+        ``pixel_unshuffle²`` tile pixels): the nine views' features and the fused features
+        with the temporaries of a block and the U-Net skips. Measured peaks (float32, one
+        tile): ``ModelConfig.mini()`` 2.1–2.6 kB per pixel against 3.3 kB estimated;
+        ``ModelConfig.reference()`` 4.7 kB against 6.7 kB; the cm2-v2 curve's depth-5
+        network with lens context 1.6 kB against 3.3 kB, and on a grid twice coarser
+        (``pixel_unshuffle=2``, width 32, view width 8) 1.3 kB against 1.7 kB.
         """
         config = self.model_config
-        return dtype.itemsize * 16 * (9 * config.view_width + config.width)
+        per_network_pixel = 16 * (9 * config.view_width + config.width)
+        return dtype.itemsize * per_network_pixel // config.pixel_unshuffle**2
 
     def receptive_radius(self) -> int:
-        """Level-0 pixels a tile's output depends on beyond its own pixels, through the
+        """Sub-view pixels a tile's output depends on beyond its own pixels, through the
         convolutions (each 3×3 depthwise convolution at level ``k`` reaches ``2^k``
-        pixels, each down- or up-sampling ``2^k``, the first and last 3×3 convolutions
-        one); channel attention averages over the whole tile, or a window around each
-        pixel (``pool_window``), and is not counted."""
-        radius = 0
+        network pixels, each down- or up-sampling ``2^k``, the first and last 3×3
+        convolutions one; a network pixel is ``pixel_unshuffle`` sub-view pixels, whose
+        block adds ``pixel_unshuffle - 1``); channel attention averages over the whole
+        tile, or a window around each pixel (``pool_window``), and is not counted."""
+        radius, f = 0, self.model_config.pixel_unshuffle
         for stage in self._stages():
-            radius += 2  # the stage's first and last 3x3 convolutions
-            radius += sum(2**level for _, _, level in stage.named_blocks())
-            radius += 2 * sum(2**level for level in range(stage.levels))
+            radius += 2 * f + f - 1  # the first and last 3x3 convolutions, the unshuffle
+            radius += f * sum(2**level for _, _, level in stage.named_blocks())
+            radius += 2 * f * sum(2**level for level in range(stage.levels))
         return radius
 
     # --------------------------------------------------------- mask inspection
@@ -332,7 +341,9 @@ def set_pooling(stage: nn.Module, window: int) -> None:
     """Make a stage's channel attention and view fusion pool over ``window`` level-0 pixels
     (0: the whole tile), on the grid of the stage's coarsest level
     (:func:`~.blocks.pooled_mean`)."""
+    first = stage.config.coarse_levels  # the stage's level 0 is the sub-view's level `first`
     for _, block, level in stage.named_blocks():
-        scaled = max(window >> level, 1) if window else 0  # never 0 (whole tile) by rounding
+        scaled = max(window >> (first + level), 1) if window else 0  # never 0 by rounding
         block.sca.window, block.sca.cell = scaled, 2 ** (stage.levels - level)
-    stage.fusion.window, stage.fusion.cell = window, 2**stage.levels
+    stage.fusion.window = max(window >> first, 1) if window else 0
+    stage.fusion.cell = 2**stage.levels

@@ -83,6 +83,16 @@ class ModelConfig(BlockConfig):
         levels widen the receptive field (a paper-scale PSF is 4× the mini one in pixels)
         without the parameters doubling each time. Model files written before this option
         existed load with ``0``.
+    pixel_unshuffle : int
+        ``1``: both stages work on the sub-view's pixel grid. ``f = 2`` or ``4``: each stage
+        works on a grid ``f`` times coarser, its inputs rearranged losslessly into ``f²``
+        channels per pixel (pixel unshuffle) and its output back (pixel shuffle), so every
+        level costs ``f²`` times less and reaches ``f`` times further: a paper-scale PSF
+        (4× the mini one in pixels) then spans as many network pixels as the mini one.
+        :attr:`width`, :attr:`view_width` and :attr:`pool_window` stay as they are (the
+        first two per network pixel, the window in sub-view pixels); :attr:`mask_spacing`
+        is in sub-view pixels. Model files written before this option existed load with
+        ``1``.
     view_width : int
         Channels per view in the view-dependent first block (``9 · view_width`` in all).
     demix_enc_blocks, demix_dec_blocks : tuple of int
@@ -164,6 +174,7 @@ class ModelConfig(BlockConfig):
     lens_context: bool = False
     context_reach: int = 1
     max_width: int = 0
+    pixel_unshuffle: int = 1
 
     block_lists = ("demix_enc_blocks", "demix_dec_blocks", "recon_enc_blocks",
                    "recon_dec_blocks")  # fmt: skip
@@ -191,6 +202,12 @@ class ModelConfig(BlockConfig):
             output="linear",
             mask_spacing=8,
         ).validate()
+
+    @property
+    def coarse_levels(self) -> int:
+        """``log2(pixel_unshuffle)``: the level of the sub-view's grid at which the stages'
+        U-Nets start (their coordinates are those of that level, :mod:`.masks`)."""
+        return self.pixel_unshuffle.bit_length() - 1
 
     @property
     def views_per_lens(self) -> int:
@@ -231,6 +248,9 @@ class ModelConfig(BlockConfig):
                      "lens_context"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"{name}: must be true or false, got {getattr(self, name)!r}")
+        check_int("pixel_unshuffle", self.pixel_unshuffle, minimum=1)
+        if self.pixel_unshuffle not in (1, 2, 4):
+            raise ConfigError(f"pixel_unshuffle: must be 1, 2 or 4, got {self.pixel_unshuffle!r}")
         if 0 < self.max_width < self.width:
             raise ConfigError(f"max_width: {self.max_width} is below width {self.width}")
         if self.context_reach != 1 and not self.lens_context:

@@ -37,7 +37,8 @@ def with_lens_context(model: SVCoDe, reach: int = 1) -> SVCoDe:
     if not config.lens_context:  # one first convolution shared by the nine lenses
         narrow, bias = narrow.repeat(N_LENSES, 1, 1, 1), bias.repeat(N_LENSES)
     narrow = narrow.unflatten(0, (N_LENSES, -1))  # (lens, out, crops, k, k)
-    weight = narrow.new_zeros(*narrow.shape[:2], wide.demix.views_per_lens, *narrow.shape[3:])
+    weight = narrow.new_zeros(*narrow.shape[:2], wide.demix.intro.in_channels // N_LENSES,
+                              *narrow.shape[3:])  # fmt: skip
     weight[:, :, : narrow.shape[2]] = narrow  # a shorter reach's crops come first
     state["demix.intro.weight"] = weight.flatten(0, 1)
     state["demix.intro.bias"] = bias

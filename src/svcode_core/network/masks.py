@@ -105,6 +105,7 @@ def coordinate_grids(
     levels: int,
     spacing: int = 0,
     cache: MaskCache | None = None,
+    first: int = 0,
 ) -> list[CoordGrid]:
     """The grid of every U-Net level for tiles of padded ``shape`` at ``origins``.
 
@@ -126,6 +127,11 @@ def coordinate_grids(
     cache : MaskCache, optional
         With exact masks, the grids carry the whole-sub-view fields the cache keeps;
         with lattice masks, the tiles' places.
+    first : int
+        The sub-view's level at which the U-Net starts (``ModelConfig.coarse_levels``):
+        ``shape`` and ``origins`` stay in sub-view pixels, ``shape`` a multiple of
+        ``2**(first + levels)``, and the grids are those of levels ``first`` to
+        ``first + levels``.
 
     Returns
     -------
@@ -141,6 +147,7 @@ def coordinate_grids(
     >>> [tuple(g.enc_row.shape) for g in grids], grids[0].tiles.tolist()
     ([(2, 16, 8), (2, 8, 8), (2, 4, 8)], [0, 1, 0])
     """
+    levels += first
     fields: list[MaskField | None] = [None] * (levels + 1)
     if cache is not None and not spacing:
         fields = field_grids(encode, origins, sub_view_size, shape, levels)
@@ -154,13 +161,13 @@ def coordinate_grids(
     if spacing:
         return [
             _lattice_grid(encode, origins, sub_view_size, shape, level, spacing, tiles, cache)
-            for level in range(levels + 1)
+            for level in range(first, levels + 1)
         ]
     rows = level_coordinates(origins[:, 0], shape[0], sub_view_size, levels)
     cols = level_coordinates(origins[:, 1], shape[1], sub_view_size, levels)
     return [
         CoordGrid(encode(r), encode(c), cache, field, tiles)
-        for r, c, field in zip(rows, cols, fields, strict=True)
+        for r, c, field in list(zip(rows, cols, fields, strict=True))[first:]
     ]
 
 

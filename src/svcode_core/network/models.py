@@ -19,6 +19,7 @@ import math
 from collections.abc import Sequence
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from ..config import N_LENSES
@@ -224,7 +225,10 @@ class _ViewNet(nn.Module):
     """One stage: per view a 3×3 convolution to ``view_width`` channels and the
     view-dependent CoDe block (shared convolutions, a mask MLP per lens), the views fused
     into ``width`` channels (:class:`~.blocks.ViewFusion`), the U-Net, a 3×3 convolution
-    and the output activation (:attr:`ModelConfig.output`)."""
+    and the output activation (:attr:`ModelConfig.output`). With
+    :attr:`ModelConfig.pixel_unshuffle` ``f > 1`` all of it runs on a grid ``f`` times
+    coarser: the views enter as ``f²`` channels per view and the output leaves by a pixel
+    shuffle."""
 
     stage = ""
 
@@ -234,15 +238,17 @@ class _ViewNet(nn.Module):
         self.config = config.validate()
         lenses = N_LENSES if config.lens_specific_first_block else 1
         self.views_per_lens = config.views_per_lens if self.stage == "demix" else 1
+        self.unshuffle = config.pixel_unshuffle
+        inputs = self.views_per_lens * self.unshuffle**2  # channels per lens
         if self.views_per_lens == 1:  # one convolution shared by the nine views
-            self.intro = nn.Conv2d(1, config.view_width, 3, padding=1)
+            self.intro = nn.Conv2d(inputs, config.view_width, 3, padding=1)
         else:  # each lens combines its own crops: which of them matter depends on the lens
-            crops, width = N_LENSES * self.views_per_lens, N_LENSES * config.view_width
+            crops, width = N_LENSES * inputs, N_LENSES * config.view_width
             self.intro = nn.Conv2d(crops, width, 3, padding=1, groups=N_LENSES)
         self.view_block = _block(config.view_width, config, lenses)
         self.fusion = ViewFusion(N_LENSES, config.view_width, config.width)
         self.unet = UNet(config, enc_blocks, middle_blocks, dec_blocks)
-        self.ending = nn.Conv2d(config.width, out_channels, 3, padding=1)
+        self.ending = nn.Conv2d(config.width, out_channels * self.unshuffle**2, 3, padding=1)
         set_pooling(self, config.pool_window)
 
     @property
@@ -253,15 +259,19 @@ class _ViewNet(nn.Module):
     def run(self, views: torch.Tensor, masks: MaskProvider | None) -> torch.Tensor:
         """The stage on padded views ``(B, 9 · views_per_lens, H, W)``; ``masks`` a mask
         provider (:mod:`.masks`)."""
-        batch, _, h, w = views.shape
+        if self.unshuffle > 1:  # each view's pixels to channels, lens-major order kept
+            views = F.pixel_unshuffle(views, self.unshuffle)
+        batch, channels, h, w = views.shape
         # the view block's few channels per lens run channels first (see LayerNorm2d)
         if self.views_per_lens == 1:
-            x = self.intro(views.reshape(batch * N_LENSES, 1, h, w).contiguous())
+            x = self.intro(views.reshape(batch * N_LENSES, channels // N_LENSES, h, w).contiguous())
         else:
             x = self.intro(views.contiguous()).reshape(batch * N_LENSES, -1, h, w)
         x = self.view_block(x, None if masks is None else masks(self.view_block, 0))
         x = x.reshape(batch, -1, h, w).contiguous(memory_format=torch.channels_last)
         out = self.ending(self.unet(self.fusion(x), masks))
+        if self.unshuffle > 1:
+            out = F.pixel_shuffle(out, self.unshuffle)
         if self.config.output == "sigmoid":
             return torch.sigmoid(out)
         return out if self.training else out.clamp_min(0)
