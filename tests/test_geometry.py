@@ -4,6 +4,8 @@ import torch
 
 from svcode_core.physics.geometry import (
     CONTEXT_SHIFTS,
+    assemble_frame,
+    assemble_window,
     context_shifts,
     context_views,
     extract_sub_views,
@@ -124,3 +126,18 @@ def test_sensor_coverage_is_the_sensor_window_seen_from_each_sub_view(mini_syste
         inside = on_rows[:, None] & on_cols[None, :]
         np.testing.assert_array_equal(coverage[lens].numpy(), inside.astype(np.float64))
     assert coverage.dtype == torch.float64
+
+
+def test_assemble_window_reads_stored_float32_views_without_a_warning(tiny_system, tmp_path):
+    """A dataset's float32 views are read-only memory maps: the window is assembled from
+    copies (torch warns about tensors over read-only arrays) and equals the whole frame's."""
+    import warnings
+
+    views = np.random.default_rng(0).random((9, *(tiny_system.sub_view_size,) * 2))
+    np.save(tmp_path / "views.npy", views.astype(np.float32))
+    stored = np.load(tmp_path / "views.npy", mmap_mode="r")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        window = assemble_window(stored, tiny_system, 3, -2, 20, 24)
+    expected = assemble_frame(torch.from_numpy(views).float(), tiny_system)[3:23, :22]
+    torch.testing.assert_close(window[:, 2:], expected)
