@@ -227,15 +227,19 @@ class TiledModel(nn.Module):
 
         ``16 · (9 · view_width + width)`` values of ``dtype`` per network pixel (which is
         ``pixel_unshuffle²`` tile pixels): the nine views' features and the fused features
-        with the temporaries of a block and the U-Net skips. Measured peaks (float32, one
-        tile): ``ModelConfig.mini()`` 2.1–2.6 kB per pixel against 3.3 kB estimated;
-        ``ModelConfig.reference()`` 4.7 kB against 6.7 kB; the cm2-v2 curve's depth-5
-        network with lens context 1.6 kB against 3.3 kB, and on a grid twice coarser
-        (``pixel_unshuffle=2``, width 32, view width 8) 1.3 kB against 1.7 kB.
+        with the temporaries of a block and the U-Net skips; on a coarser grid also the
+        full-resolution copies that the pixel (un)shuffles make. Measured peaks (float32,
+        one tile): ``ModelConfig.mini()`` 2.1–2.6 kB per pixel against 3.3 kB estimated;
+        ``ModelConfig.reference()`` 4.7 kB against 6.7 kB; the cm2-v2 curve's networks
+        with lens context: depth 5, 1.6 kB against 3.3 kB; on a grid twice coarser
+        (``depth5-f2``) 1.4 kB against 2.1 kB; four times coarser (``depth4-f4``) 1.0 kB
+        against 1.3 kB.
         """
-        config = self.model_config
-        per_network_pixel = 16 * (9 * config.view_width + config.width)
-        return dtype.itemsize * per_network_pixel // config.pixel_unshuffle**2
+        config, f = self.model_config, self.model_config.pixel_unshuffle
+        values = 16 * (9 * config.view_width + config.width) // f**2
+        if f > 1:  # the crops' unshuffled copy, the demixed views' shuffles, the output
+            values += 9 * config.views_per_lens + 27 + 2
+        return dtype.itemsize * values
 
     def receptive_radius(self) -> int:
         """Sub-view pixels a tile's output depends on beyond its own pixels, through the
