@@ -332,8 +332,10 @@ def assemble_window(
         wr0, wr1, vr0, vr1 = _overlap(int(r0) - row0, size, row1 - row0)
         wc0, wc1, vc0, vc1 = _overlap(int(c0) - col0, size, col1 - col0)
         if wr0 < wr1 and wc0 < wc1:
-            part = np.array(views[lens, vr0:vr1, vc0:vc1], dtype=np.float32)  # writable
-            total[wr0:wr1, wc0:wc1] += torch.from_numpy(part)
+            part = views[lens, vr0:vr1, vc0:vc1]
+            if not isinstance(part, torch.Tensor):  # a copy: stored views are read-only
+                part = torch.tensor(np.asarray(part))
+            total[wr0:wr1, wc0:wc1] += part.float()
             count[wr0:wr1, wc0:wc1] += 1
     out[row0 - top : row1 - top, col0 - left : col1 - left] = total / count.clamp(min=1)
     return out
