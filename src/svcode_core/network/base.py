@@ -342,8 +342,8 @@ class _CacheSwitch:
 
 
 def set_pooling(stage: nn.Module, window: int) -> None:
-    """Make a stage's channel attention and view fusion pool over ``window`` level-0 pixels
-    (0: the whole tile), on the grid of the stage's coarsest level
+    """Make a stage's channel attention and view fusion pool over ``window`` sub-view
+    pixels (0: the whole tile), on the grid of the stage's coarsest level
     (:func:`~.blocks.pooled_mean`)."""
     first = stage.config.coarse_levels  # the stage's level 0 is the sub-view's level `first`
     for _, block, level in stage.named_blocks():
