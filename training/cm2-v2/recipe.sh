@@ -8,16 +8,8 @@
 # current state; ../cm2-mini-v2/snapshot.sh runs/cm2-v2-long training/cm2-v2/run running).
 # Usage (from the repository root): bash training/cm2-v2/recipe.sh [svcode train options]
 set -euo pipefail
-export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}" OMP_WAIT_POLICY="${OMP_WAIT_POLICY:-PASSIVE}"
 here="$(cd "$(dirname "$0")" && pwd)"
-run=runs/cm2-v2-long state="$here/run"
-bash "$here/data.sh"
-if [ ! -f "$run/checkpoints/latest.json" ] && [ -f "$state/checkpoints/latest.json" ]; then
-  mkdir -p "$run" && cp -r "$state/." "$run/"
-fi
-resume=()
-[ -f "$run/checkpoints/latest.json" ] && resume=(--resume)
-svcode train --data runs/data-cm2-v2 --out "$run" --model-config "$here/depth4-f4.json" \
+bash "$here/resume.sh" runs/cm2-v2-long "$here/run" --model-config "$here/depth4-f4.json" \
   --lens-context --patch-size 384 --precision bf16 --normalise-exposure --mse-weight 100 \
   --epochs 90 --batch-size 4 --same-origin 4 --patches-per-epoch 400 --val-patches 16 \
-  --lr 8e-4 --warmup-steps 200 --seed 0 --no-progress "${resume[@]}" "$@"
+  --lr 8e-4 --warmup-steps 200 --seed 0 "$@"
