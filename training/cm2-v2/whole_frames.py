@@ -45,10 +45,10 @@ def run(command: list[str]) -> tuple[float, float]:
     """Wall seconds and peak resident GiB of a child process."""
     start = time.perf_counter()
     child = subprocess.Popen(command, stdout=subprocess.DEVNULL)
-    _, status, usage = os.wait4(child.pid, 0)
-    child.returncode = os.waitstatus_to_exitcode(status)
-    if child.returncode:
-        raise SystemExit(f"failed ({child.returncode}): {' '.join(command)}")
+    _, status, usage = os.wait4(child.pid, 0)  # the child's own peak, not the largest so far
+    code = os.waitstatus_to_exitcode(status)
+    if code:
+        raise SystemExit(f"failed ({code}): {' '.join(command)}")
     return time.perf_counter() - start, usage.ru_maxrss / 2**20
 
 
