@@ -471,6 +471,7 @@ def test_memory_budget_chunks_the_operator_not_the_result(tiny_system):
 # ------------------------------------------------------------------ benchmark
 def test_benchmark_rows_and_outputs(tiny_system, tiny_op, tmp_path):
     from svcode_bench.regimes import (
+        QUICK,
         Scene,
         admm_rows,
         deconvolution_rows,
@@ -482,7 +483,7 @@ def test_benchmark_rows_and_outputs(tiny_system, tiny_op, tmp_path):
     truth = disc_object(tiny_system.sub_view_size).numpy()
     scenes = [Scene("disc", truth, tiny_op.measure(torch.from_numpy(truth)).numpy())]
     rows = admm_rows(tiny_op, scenes, (2, 10), "K=3", 0.0)
-    rows += deconvolution_rows(tiny_op, scenes, quick=True)
+    rows += deconvolution_rows(tiny_op, scenes, QUICK)
     summaries = [row.summary() for row in rows]
     assert [s["method"] for s in summaries] == ["LSV-ADMM", "LSV-ADMM", "Wiener", "Richardson-Lucy"]
     assert summaries[0]["seconds"] < summaries[1]["seconds"]  # time grows with iterations

@@ -1,10 +1,13 @@
 """``svcode bench`` in every regime: the departed instruments, the report and its figure."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
+import torch
 
-from svcode_bench.regimes import INVERSE_CRIME, REGIMES, SCENES, merge_reports
+from svcode_bench import regimes
+from svcode_bench.regimes import INVERSE_CRIME, REGIMES, SCENES, Row, Scene, merge_reports
 from svcode_core.cli import main
 from svcode_core.phantoms import HELD_OUT_IMAGES
 
@@ -65,3 +68,65 @@ def test_merge_keys_rows_by_regime_and_method():
                                                    "psnr": 3.0}]}  # fmt: skip
     merged = merge_reports(earlier, now)
     assert [(r["regime"], r["psnr"]) for r in merged["rows"]] == [("matched", 1.0), ("model", 3.0)]
+
+
+def test_lsv_admm_at_sv_codes_time_is_read_from_its_own_trace(tiny_system):
+    """The equal-time row takes, frame by frame, the last iteration done within the
+    reference's seconds: its scores are the traced ones, which are the rows' own at the
+    read-out iterations."""
+    from svcode_core.phantoms import make_object
+    from svcode_core.physics.cm2 import CM2Operator
+
+    tiny_op = CM2Operator.from_system(tiny_system)
+    scenes = []
+    for index, kind in enumerate(("cells", "vessels")):
+        truth = make_object(kind, tiny_op.system.sub_view_size, index)
+        scenes.append(Scene(kind, truth, tiny_op.measure(torch.from_numpy(truth)).numpy()))
+    trace: dict = {}
+    rows = regimes.admm_rows(tiny_op, scenes, (3, 6), "K=3", 0.5, trace=trace)
+    assert [len(trace[s.name]) for s in scenes] == [6, 6]
+    for row, n in zip(rows, (3, 6), strict=True):
+        for scene in scenes:
+            seconds, quality = trace[scene.name][n - 1]
+            assert row.per_scene[scene.name]["psnr"] == quality["psnr"]
+            assert row.per_scene[scene.name]["seconds"] == seconds
+    times = {name: [seconds for seconds, _ in steps] for name, steps in trace.items()}
+    assert all(np.all(np.diff(t) > 0) for t in times.values())
+    reference = Row("SV-CoDe", "planned", {}, per_scene={
+        "cells": {"seconds": (times["cells"][3] + times["cells"][4]) / 2},  # within 4
+        "vessels": {"seconds": times["vessels"][0] / 2}})  # not even one: one all the same
+    equal = regimes.equal_time_row(rows[0], trace, reference)
+    assert [equal.per_scene[n]["iterations"] for n in ("cells", "vessels")] == [4, 1]
+    assert equal.per_scene["cells"]["psnr"] == trace["cells"][3][1]["psnr"]
+    assert equal.knob == f"K={tiny_op.rank}, at SV-CoDe's time (1–4 it)"
+    assert equal.setup_seconds == rows[0].setup_seconds and equal.settings["iterations"] == [1, 4]
+    assert np.isfinite(equal.summary()["psnr"])
+
+
+def test_paper_scale_plan_runs_its_rows(tiny_system, tiny_model_config, tmp_path, monkeypatch):
+    """The paper-scale plan (here on the tiny system, with one scene): LSV-ADMM at 10
+    iterations and at SV-CoDe's time, Wiener, SV-CoDe's planned tiling, in its two regimes."""
+    from svcode_core.methods.model_file import save_model
+    from svcode_core.network import SVCoDe
+
+    weights = save_model(tmp_path / "m.safetensors", SVCoDe(tiny_model_config), tiny_system)
+    plan = replace(regimes.PAPER, scenes=("cells",))
+    monkeypatch.setattr(regimes, "plan_for", lambda system, quick=False: plan)
+    report = regimes.run_benchmark(tiny_system, weights=weights, progress=lambda line: None)
+    assert report["plan"] == "paper-scale" and report["regimes"] == ["matched", "realistic"]
+    for regime in report["regimes"]:
+        knobs = [(r["method"], r["knob"]) for r in report["rows"] if r["regime"] == regime]
+        assert knobs[0] == ("LSV-ADMM", "K=3, 10 it") and knobs[1][0] == "Wiener"
+        assert knobs[2][0] == "SV-CoDe" and "refine" not in knobs[2][1]
+        assert knobs[3][0] == "LSV-ADMM" and knobs[3][1].startswith("K=3, at SV-CoDe's time")
+        assert len(knobs) == 4
+
+
+def test_bench_never_writes_over_a_report_on_another_system(tiny_system, tmp_path, capsys):
+    out = tmp_path / "results"
+    out.mkdir()
+    (out / "regimes.json").write_text(json.dumps({"system": "cm2-v2", "rows": []}))
+    system_json = tiny_system.save(tmp_path / "tiny.json")
+    assert main(["bench", "--quick", "--system", str(system_json), "--methods", "wiener",
+                 "--out", str(out)]) == 2
+    assert "holds a report on system 'cm2-v2'" in capsys.readouterr().err

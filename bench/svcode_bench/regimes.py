@@ -45,10 +45,16 @@ Timing and memory
     memory the allocator reuses from earlier rows (small rows after large ones
     under-report). Where the peak cannot be reset (not Linux) the column is empty.
 
-``--quick`` runs two scenes (one synthetic, one held-out), ADMM (``K`` = 3) to 30
-iterations, one Wiener and one RL setting and SV-CoDe's planned tiling without and with the
-periphery refinement (no footprint measurement), in every regime: a few minutes on one
-core. ``--regimes`` runs a subset, ``--methods`` a subset of the method families.
+Plans (:func:`plan_for`)
+    The rows above are the full plan. ``--quick`` runs two scenes (one synthetic, one
+    held-out), ADMM (``K`` = 3) to 30 iterations, one Wiener and one RL setting and
+    SV-CoDe's planned tiling without and with the periphery refinement (no footprint
+    measurement), in every regime: a few minutes on one core. On paper-scale systems
+    (``cm2-v2``), where 10 LSV-ADMM iterations take minutes a frame, the plan is three scenes
+    (cells, neurons, the held-out ``ihc``; one with ``--quick``) in the matched and realistic
+    regimes: LSV-ADMM at 10 iterations and again read out, frame by frame, at SV-CoDe's own
+    time, Wiener at balance 1e-2 and SV-CoDe's planned tiling. ``--regimes`` runs a subset,
+    ``--methods`` a subset of the method families.
 """
 
 from __future__ import annotations
@@ -57,7 +63,7 @@ import json
 import platform
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -91,22 +97,61 @@ SCENES = (
     ("neurons", "neurons", {}),
     *((name.removesuffix(".png"), "held-out", {"name": name}) for name in HELD_OUT_IMAGES),
 )
-QUICK_SCENES = ("cells", "ihc")
-#: Regimes and the departure set each simulates; "matched" is the nominal system.
+#: what the matched regime is
 INVERSE_CRIME = "inverse crime: data simulated with the reconstructors' own forward model"
-ADMM_CHECKPOINTS = (10, 20, 50)
-QUICK_ADMM_CHECKPOINTS = (10, 30)
 ADMM_RANK = 3
 RANK_SWEEP = (1, 6)
 RANK_SWEEP_ITERATIONS = 50
-WIENER_BALANCES = (1e-3, 1e-2, 1e-1)
-RL_ITERATIONS = (10, 30)
 METRICS = ("psnr", "ssim", "psnr_centre", "psnr_ring")
 METHOD_FAMILIES = ("admm", "deconvolution", "svcode", "learned", "admm-system-k")
 #: the iterations of the ``admm-system-k`` row (at most: it stops at the tolerance)
 SYSTEM_K_ITERATIONS = 200
 #: the families ``svcode bench`` runs unless ``--methods`` says otherwise
 DEFAULT_FAMILIES = METHOD_FAMILIES[:4]
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What one run measures: its scenes, its regimes unless told, and its rows."""
+
+    name: str
+    scenes: tuple[str, ...]
+    regimes: tuple[str, ...]
+    #: LSV-ADMM (K = 3) read out at these iterations
+    admm_checkpoints: tuple[int, ...]
+    #: the LSV-ADMM rows again with each frame's own TV weight
+    admm_auto: bool
+    wiener_balances: tuple[float, ...]
+    rl_iterations: tuple[int, ...]
+    #: SV-CoDe's first knobs (:func:`svcode_rows`): in the matched regime, elsewhere
+    svcode_knobs: tuple[int, int]
+    #: the models' size and memory at S and 2S (a subprocess each)
+    footprint: bool
+    #: LSV-ADMM also read out, frame by frame, at SV-CoDe's own time (:func:`equal_time_row`)
+    equal_time: bool
+
+
+FULL = Plan("full", tuple(s[0] for s in SCENES), tuple(REGIMES), (10, 20, 50), True,
+            (1e-3, 1e-2, 1e-1), (10, 30), (5, 2), True, False)  # fmt: skip
+QUICK = Plan("quick", ("cells", "ihc"), tuple(REGIMES), (10, 30), False, (1e-2,), (30,),
+             (2, 2), False, False)  # fmt: skip
+#: paper-scale systems: LSV-ADMM's 10 iterations take minutes a frame there
+PAPER = Plan("paper-scale", ("cells", "neurons", "ihc"), ("matched", "realistic"), (10,), False,
+             (1e-2,), (), (1, 1), False, True)  # fmt: skip
+#: sub-views from this size on are paper-scale (cm2-v2: 2400 px; cm2-mini: 384)
+PAPER_SCALE_SUB_VIEW = 1024
+
+
+def plan_for(system: SystemConfig, quick: bool = False) -> Plan:
+    """The plan of a run on ``system``: :data:`FULL` or :data:`QUICK`, and :data:`PAPER`
+    (one scene with ``quick``) for sub-views of :data:`PAPER_SCALE_SUB_VIEW` px and more.
+
+    >>> plan_for(SystemConfig.preset("cm2-v2")).name, plan_for(SystemConfig.tiny(), True).name
+    ('paper-scale', 'quick')
+    """
+    if system.sub_view_size >= PAPER_SCALE_SUB_VIEW:
+        return replace(PAPER, name="paper-scale quick", scenes=PAPER.scenes[:1]) if quick else PAPER
+    return QUICK if quick else FULL
 
 
 @dataclass
@@ -204,10 +249,13 @@ def admm_rows(
     label: str,
     setup_seconds: float,
     tv_weight: float | str | None = None,
+    trace: dict[str, list[tuple[float, dict[str, float]]]] | None = None,
 ) -> list[Row]:
     """LSV-ADMM rows: one run per scene, read out at every checkpoint; ``tv_weight`` the
     system's setting by default, ``"auto"`` for each scene's own
-    (:func:`~svcode_core.methods.baselines.admm.auto_tv_weight`)."""
+    (:func:`~svcode_core.methods.baselines.admm.auto_tv_weight`). A ``trace`` dict receives,
+    per scene, the solver time and the scores after every iteration up to the last
+    checkpoint (for :func:`equal_time_row`)."""
     settings = settings_for(operator.system)
     tv_weight = settings.tv_weight if tv_weight is None else tv_weight
     auto = tv_weight == "auto"
@@ -225,23 +273,50 @@ def admm_rows(
         )
         for n in checkpoints
     }
+    last = max(checkpoints)
     with PeakMemory() as memory:
         for scene in scenes:
             frame = _padded(scene, operator)
-            record = CheckpointRecorder(set(rows))
-            solver.solve(frame, iterations=max(checkpoints), tolerance=0.0, callback=record)
-            for n, (seconds, estimate) in record.snapshots.items():
-                _score(rows[n], scene, estimate, seconds)
+            record = CheckpointRecorder(set(range(1, last + 1)) if trace is not None else set(rows))
+            solver.solve(frame, iterations=last, tolerance=0.0, callback=record)
+            for n, (seconds, estimate) in sorted(record.snapshots.items()):
+                if n in rows:
+                    _score(rows[n], scene, estimate, seconds)
+                if trace is not None:
+                    quality = image_quality(scene.truth, estimate.astype(np.float64), 1.0)
+                    trace.setdefault(scene.name, []).append((seconds, quality))
     for row in rows.values():
         row.peak_memory_mib = memory.mib
     return list(rows.values())
 
 
-def deconvolution_rows(operator: CM2Operator, scenes: list[Scene], quick: bool) -> list[Row]:
-    """Wiener and Richardson–Lucy rows."""
+def equal_time_row(admm: Row, trace: dict[str, list[tuple[float, dict[str, float]]]],
+                   reference: Row) -> Row:
+    """LSV-ADMM read out, frame by frame, after the last iteration it completed within
+    ``reference``'s seconds on that frame (at least one; at most the traced ones).
+
+    ``admm`` is one of the traced run's rows (:func:`admm_rows` with ``trace``), whose
+    set-up and memory the new row shares.
+    """
+    row = Row(admm.method, f"K={admm.settings['rank']}, at {reference.method}'s time",
+              {"rank": admm.settings["rank"], "tv_weight": admm.settings["tv_weight"]},
+              setup_seconds=admm.setup_seconds, peak_memory_mib=admm.peak_memory_mib)  # fmt: skip
+    for name, steps in trace.items():
+        budget = reference.per_scene[name]["seconds"]
+        done = max(1, sum(seconds <= budget for seconds, _ in steps))
+        seconds, quality = steps[done - 1]
+        row.per_scene[name] = {**quality, "seconds": seconds, "iterations": done}
+    counts = sorted({scores["iterations"] for scores in row.per_scene.values()})
+    row.settings["iterations"] = counts
+    row.knob += f" ({'–'.join(str(n) for n in dict.fromkeys((counts[0], counts[-1])))} it)"
+    return row
+
+
+def deconvolution_rows(operator: CM2Operator, scenes: list[Scene], plan: Plan) -> list[Row]:
+    """Wiener and Richardson–Lucy rows at the plan's settings."""
     rows = []
-    knobs = [("wiener", "balance", b) for b in (WIENER_BALANCES[1:2] if quick else WIENER_BALANCES)]
-    knobs += [("rl", "iterations", n) for n in (RL_ITERATIONS[1:2] if quick else RL_ITERATIONS)]
+    knobs = [("wiener", "balance", b) for b in plan.wiener_balances]
+    knobs += [("rl", "iterations", n) for n in plan.rl_iterations]
     for method, name, value in knobs:
         start = time.perf_counter()
         rec = build_reconstructor(method, operator.system, operator=operator, **{name: value})
@@ -405,11 +480,12 @@ def run_benchmark(
     methods: tuple[str, ...] = DEFAULT_FAMILIES,
     ablations: tuple[Path, ...] = (),
     learned: tuple[Path, ...] = (),
-    regimes: tuple[str, ...] = tuple(REGIMES),
+    regimes: tuple[str, ...] | None = None,
     all_knobs: bool = False,
     rank_sweep: bool = False,
 ) -> dict[str, Any]:
-    """Run the rows of ``methods`` on the fixed scenes of every regime; return the report.
+    """Run the rows of ``methods`` on the fixed scenes of ``regimes`` (default: the plan's,
+    :func:`plan_for`); return the report.
 
     ``ablations`` are further SV-CoDe model files, benchmarked at the default knob only;
     ``learned`` are trained learned-baseline model files (the ``learned`` family). Every
@@ -417,6 +493,8 @@ def run_benchmark(
     ``all_knobs`` adds SV-CoDe's time-only knobs and ``rank_sweep`` ADMM at other ``K``,
     both in the matched regime only.
     """
+    plan = plan_for(system, quick)
+    regimes = plan.regimes if regimes is None else tuple(regimes)
     unknown = set(methods) - set(METHOD_FAMILIES)
     if unknown:
         raise ValueError(f"unknown method families {sorted(unknown)}; choose from "
@@ -424,7 +502,7 @@ def run_benchmark(
     for regime in regimes:
         if regime not in REGIMES:
             raise ValueError(f"unknown regime {regime!r}; choose from {', '.join(REGIMES)}")
-    names = QUICK_SCENES if quick else tuple(s[0] for s in SCENES)
+    names = plan.scenes
     start = time.perf_counter()
     psfs = model_psfs(system)
     nominal = Simulator(system, CM2Operator.from_psfs(system, psfs))
@@ -454,10 +532,12 @@ def run_benchmark(
         progress(f"[{regime}] {len(scenes)} scenes simulated (true K = "
                  f"{simulator.operator.rank}) in {time.perf_counter() - begin:.1f} s")  # fmt: skip
         new: list[Row] = []
+        trace: dict | None = {} if plan.equal_time else None
         if "admm" in methods:
-            checkpoints = QUICK_ADMM_CHECKPOINTS if quick else ADMM_CHECKPOINTS
-            new += admm_rows(op, scenes, checkpoints, f"K={ADMM_RANK}", setup)
-            if not quick:
+            checkpoints = plan.admm_checkpoints
+            traced = admm_rows(op, scenes, checkpoints, f"K={ADMM_RANK}", setup, trace=trace)
+            new += traced
+            if plan.admm_auto:
                 new += admm_rows(op, scenes, checkpoints, f"K={ADMM_RANK}", setup, "auto")
             if regime == "matched" and rank_sweep:
                 for rank in RANK_SWEEP:
@@ -465,14 +545,18 @@ def run_benchmark(
                     new += admm_rows(sweep, scenes, (RANK_SWEEP_ITERATIONS,), f"K={sweep.rank}",
                                      sweep_setup)  # fmt: skip
         if "deconvolution" in methods:
-            new += deconvolution_rows(op, scenes, quick)
+            new += deconvolution_rows(op, scenes, plan)
         if "svcode" in methods and weights is not None:
-            knobs = (all_knobs or 5) if regime == "matched" and not quick else 2
-            new += svcode_rows(weights, system, scenes, all_knobs=knobs, cache=cache,
-                               footprint=not quick)  # fmt: skip
+            matched, other = plan.svcode_knobs
+            knobs = (all_knobs or matched) if regime == "matched" else other
+            main = svcode_rows(weights, system, scenes, all_knobs=knobs, cache=cache,
+                               footprint=plan.footprint)  # fmt: skip
+            new += main
+            if trace:  # LSV-ADMM given SV-CoDe's time on each frame
+                new.append(equal_time_row(traced[0], trace, main[0]))
         for path in ablations:
             extra = svcode_rows(path, system, scenes, all_knobs=False, cache=cache,
-                                footprint=not quick)  # fmt: skip
+                                footprint=plan.footprint)  # fmt: skip
             if weights is not None and model_label(path) == model_label(weights):
                 for row in extra:  # the same network as the main rows: told apart by file
                     row.method += f" ({path.parent.name}/{path.name})"
@@ -489,6 +573,7 @@ def run_benchmark(
     return {
         "system": system.name,
         "quick": quick,
+        "plan": plan.name,
         "regimes": list(regimes),
         "departures": departures,
         "scenes": list(names),

@@ -74,8 +74,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "bench",
         help=SUMMARIES["bench"],
         description=__doc__.split("\n\n")[0]
-        + " Writes regimes.{json,md,png} to --out; the checkout's committed report "
-        "(bench/results) only when named with --out, and then only a full run or --merge.",
+        + " Writes regimes.{json,md,png} to --out, never over a report on another system; "
+        "the checkout's committed report (bench/results) only when named with --out, and "
+        "then only a full run or --merge. At paper scale (cm2-v2) the plan is "
+        "smaller: three scenes, two regimes, LSV-ADMM at 10 iterations and at SV-CoDe's "
+        "time, Wiener, SV-CoDe (about an hour on one thread).",
     )
     # the regimes are the benchmark's (its light package, not the engine); without it, run()
     # says how to get the engine
@@ -84,9 +87,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     except NotInstalled:
         regimes = None
     parser.add_argument("--quick", action="store_true",
-                        help="small version: two scenes, fewer knobs, every regime (minutes)")
-    parser.add_argument("--regimes", nargs="+", choices=regimes, default=regimes,
-                        help="instruments the test frames come from (default: all)")
+                        help="small version: two scenes, fewer knobs, every regime (minutes); "
+                        "at paper scale one scene")  # fmt: skip
+    parser.add_argument("--regimes", nargs="+", choices=regimes,
+                        help="instruments the test frames come from (default: all; at paper "
+                        "scale, e.g. cm2-v2, matched and realistic)")  # fmt: skip
     parser.add_argument("--all-knobs", action="store_true",
                         help="in the matched regime, also SV-CoDe's time-only knobs (mask "
                         "cache off, bf16, skipping off)")  # fmt: skip
@@ -125,20 +130,29 @@ def chosen_methods(args: argparse.Namespace) -> tuple[str, ...]:
     return tuple(dict.fromkeys(name for names in args.methods for name in names))
 
 
-def check_out(args: argparse.Namespace, regimes: tuple[str, ...]) -> None:
-    """Refuse to replace the checkout's committed report with a partial one: into
-    ``bench/results`` only a full run (every regime, the default methods, not ``--quick``)
-    or ``--merge``.
+def check_out(args: argparse.Namespace, system: str, regimes: tuple[str, ...]) -> None:
+    """Refuse to write over a report on another system than ``system``, and to replace the
+    checkout's committed report with a partial one: into ``bench/results`` only a full run
+    (the plan's ``regimes``, the default methods, not ``--quick``) or ``--merge``.
 
     Raises
     ------
     ValueError
         With what to do instead.
     """
+    import json
+
+    earlier = args.out / "regimes.json"
+    if earlier.is_file():
+        theirs = json.loads(earlier.read_text(encoding="utf-8")).get("system")
+        if theirs != system:
+            raise ValueError(f"--out {args.out} holds a report on system {theirs!r}, not "
+                             f"{system!r}: choose another --out (e.g. {args.out / system})")
     if args.merge or args.out.resolve() != CHECKOUT_RESULTS:
         return
     partial = [why for why, is_partial in (
-        ("--quick", args.quick), ("--regimes", tuple(args.regimes) != regimes),
+        ("--quick", args.quick),
+        ("--regimes", args.regimes is not None and tuple(args.regimes) != regimes),
         ("--methods", chosen_methods(args) != DEFAULT_METHODS)) if is_partial]  # fmt: skip
     if partial:
         raise ValueError(f"--out {args.out} holds the checkout's committed report: a run with "
@@ -158,7 +172,8 @@ def run(args: argparse.Namespace) -> int:
     bench = engine()
     if args.threads < 1:
         raise ValueError(f"--threads must be >= 1 (torch CPU threads), got {args.threads}")
-    check_out(args, tuple(bench.REGIMES))
+    system = load_system(args.system)
+    check_out(args, system.name, bench.plan_for(system, args.quick).regimes)
     for path in [args.weights, *args.ablations, *args.learned]:
         if path is not None and not path.is_file():
             raise FileNotFoundError(f"weights not found: {path}")
@@ -166,10 +181,10 @@ def run(args: argparse.Namespace) -> int:
     families = tuple(dict.fromkeys(_FAMILY[name] for name in names))
     torch.set_num_threads(args.threads)
     report = bench.run_benchmark(
-        load_system(args.system), args.quick, args.weights,
+        system, args.quick, args.weights,
         progress=(lambda line: None) if args.no_progress else print,
         methods=families, ablations=tuple(args.ablations),
-        learned=tuple(args.learned), regimes=tuple(args.regimes),
+        learned=tuple(args.learned), regimes=args.regimes and tuple(args.regimes),
         all_knobs=args.all_knobs, rank_sweep=args.rank_sweep,
     )  # fmt: skip
     if "deconvolution" in families:  # the family runs both: keep the rows asked for
