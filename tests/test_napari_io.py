@@ -36,7 +36,8 @@ def test_manifest_of_installed_package_validates():
     contributions = manifest.contributions
     assert [w.display_name for w in contributions.widgets] == [
         "Calibration", "Reconstruct", "Coordinate masks", "Simulate"]
-    assert {s.key for s in contributions.sample_data} == {"beads", "cells", "vessels"}
+    assert {s.key for s in contributions.sample_data} == {"beads", "cells", "vessels",
+                                                          "paper-cells"}
     for command in contributions.commands:  # every python_name imports
         module, _, attr = command.python_name.partition(":")
         assert hasattr(__import__(module, fromlist=[attr]), attr), command.python_name
@@ -88,6 +89,21 @@ def test_writer_round_trip_records_system_and_model(tmp_path, tiny_system, make_
     assert tuple(reopened.scale) == (10, 10)
     assert tuple(reopened.translate) == tuple(10 * t for t in object_translate(tiny_system))
     assert reopened.metadata[MODEL_KEY] == model
+
+
+def test_the_paper_scale_sample_is_a_cm2_v2_frame_and_says_its_cost(monkeypatch):
+    import napari_svcode._sample_data as samples
+
+    asked = []
+    monkeypatch.setattr(samples, "sample_layers", lambda kind, system: asked.append(
+        (kind, system.name, system.sensor_shape)))  # a real one takes a minute
+    samples.make_paper_cells_sample()
+    assert asked == [("cells", "cm2-v2", (3000, 4000))]
+    from npe2 import PluginManifest
+
+    manifest = PluginManifest.from_distribution(PLUGIN)
+    [sample] = [s for s in manifest.contributions.sample_data if s.key == "paper-cells"]
+    assert "cm2-v2" in sample.display_name and "minute" in sample.display_name
 
 
 def test_sample_layers_load_with_ground_truth(tiny_system, make_napari_viewer):
