@@ -533,6 +533,8 @@ def run_benchmark(
                  f"{simulator.operator.rank}) in {time.perf_counter() - begin:.1f} s")  # fmt: skip
         new: list[Row] = []
         trace: dict | None = {} if plan.equal_time else None
+        # a family takes many minutes at paper scale: a line after each
+        tick = "[{}] {}: {} rows ({:.0f} s)".format
         if "admm" in methods:
             checkpoints = plan.admm_checkpoints
             traced = admm_rows(op, scenes, checkpoints, f"K={ADMM_RANK}", setup, trace=trace)
@@ -544,8 +546,10 @@ def run_benchmark(
                     sweep, sweep_setup = operator(rank)
                     new += admm_rows(sweep, scenes, (RANK_SWEEP_ITERATIONS,), f"K={sweep.rank}",
                                      sweep_setup)  # fmt: skip
+            progress(tick(regime, "LSV-ADMM", len(new), time.perf_counter() - start))
         if "deconvolution" in methods:
             new += deconvolution_rows(op, scenes, plan)
+            progress(tick(regime, "Wiener and RL", len(new), time.perf_counter() - start))
         if "svcode" in methods and weights is not None:
             matched, other = plan.svcode_knobs
             knobs = (all_knobs or matched) if regime == "matched" else other
@@ -554,6 +558,7 @@ def run_benchmark(
             new += main
             if trace:  # LSV-ADMM given SV-CoDe's time on each frame
                 new.append(equal_time_row(traced[0], trace, main[0]))
+            progress(tick(regime, "SV-CoDe", len(new), time.perf_counter() - start))
         for path in ablations:
             extra = svcode_rows(path, system, scenes, all_knobs=False, cache=cache,
                                 footprint=plan.footprint)  # fmt: skip
