@@ -224,22 +224,30 @@ def _score(row: Row, scene: Scene, estimate: np.ndarray, seconds: float) -> None
 
 # ------------------------------------------------------------------ methods
 class CheckpointRecorder:
-    """ADMM callback keeping the estimate and the solver time at chosen iterations.
+    """ADMM callback keeping the estimate and the solver time at chosen iterations and,
+    given the ``truth``, the time and scores after every iteration (``scores``).
 
-    The time spent copying snapshots is excluded from the reported times.
+    The time spent copying and scoring is excluded from the reported times.
     """
 
-    def __init__(self, wanted: set[int]) -> None:
-        self.wanted = wanted
+    def __init__(self, wanted: set[int], truth: np.ndarray | None = None) -> None:
+        self.wanted, self.truth = wanted, truth
         self.snapshots: dict[int, tuple[float, np.ndarray]] = {}
+        self.scores: dict[int, tuple[float, dict[str, float]]] = {}
         self.start = time.perf_counter()
         self.paused = 0.0
 
     def __call__(self, iteration: int, x: torch.Tensor) -> None:
+        if iteration not in self.wanted and self.truth is None:
+            return
+        now = time.perf_counter()
+        seconds, estimate = now - self.start - self.paused, x.cpu().numpy()
         if iteration in self.wanted:
-            now = time.perf_counter()
-            self.snapshots[iteration] = (now - self.start - self.paused, x.cpu().numpy().copy())
-            self.paused += time.perf_counter() - now
+            self.snapshots[iteration] = (seconds, estimate.copy())
+        if self.truth is not None:
+            quality = image_quality(self.truth, estimate.astype(np.float64), data_range=1.0)
+            self.scores[iteration] = (seconds, quality)
+        self.paused += time.perf_counter() - now
 
 
 def admm_rows(
@@ -273,18 +281,15 @@ def admm_rows(
         )
         for n in checkpoints
     }
-    last = max(checkpoints)
     with PeakMemory() as memory:
         for scene in scenes:
             frame = _padded(scene, operator)
-            record = CheckpointRecorder(set(range(1, last + 1)) if trace is not None else set(rows))
-            solver.solve(frame, iterations=last, tolerance=0.0, callback=record)
-            for n, (seconds, estimate) in sorted(record.snapshots.items()):
-                if n in rows:
-                    _score(rows[n], scene, estimate, seconds)
-                if trace is not None:
-                    quality = image_quality(scene.truth, estimate.astype(np.float64), 1.0)
-                    trace.setdefault(scene.name, []).append((seconds, quality))
+            record = CheckpointRecorder(set(rows), None if trace is None else scene.truth)
+            solver.solve(frame, iterations=max(checkpoints), tolerance=0.0, callback=record)
+            for n, (seconds, estimate) in record.snapshots.items():
+                _score(rows[n], scene, estimate, seconds)
+            if trace is not None:
+                trace[scene.name] = [record.scores[n] for n in sorted(record.scores)]
     for row in rows.values():
         row.peak_memory_mib = memory.mib
     return list(rows.values())
