@@ -1,0 +1,148 @@
+"""Does the Recon-Net lose the edge strips because it cannot tell a missing view from a
+dark one?
+
+In the 16-px strips at the field's left and right edges three of the nine lenses' images
+fall off the sensor, and their demixing targets there are 0: to the Recon-Net a view that
+is missing looks like a view of a dark object. The bundled model, given the *true* demixed
+views instead of its own, still reconstructs the strips about 6 dB below the centre. This
+probe trains the Recon-Net alone on the true demixed views (the dataset's targets) twice
+from the same start: ``plain`` (each view one input channel, as the model has it) and
+``coverage`` (each view with a second channel, 1 where its sub-view lies on the sensor,
+:func:`svcode_core.physics.geometry.sensor_coverage`), then scores both on whole
+validation sub-views: PSNR in the strips, in the centre and over the field.
+
+Usage (from the repository root; the mini data of ``training/resume.sh``, or fewer frames
+of the same recipe)::
+
+    python training/cm2-mini-v5/fusion_probe.py --data runs/data-v2 --steps 1500 --out runs/fusion
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from svcode_core.network import ModelConfig
+from svcode_core.network.models import ReconNet
+from svcode_core.physics.geometry import sensor_coverage
+from svcode_core.training.dataset import TrainingData
+from svcode_core.training.loss import stage_loss
+from svcode_core.training.sampler import PatchDataset
+
+STRIP = 16  # px: the columns at each side that only six lenses see
+
+
+def build(arm: str, seed: int) -> ReconNet:
+    """The mini model's Recon-Net; with ``coverage`` its first convolution takes two
+    channels per view (the view, its coverage)."""
+    torch.manual_seed(seed)
+    net = ReconNet(ModelConfig.mini())
+    if arm == "coverage":
+        torch.manual_seed(seed)
+        net.intro = nn.Conv2d(2, net.intro.out_channels, 3, padding=1)
+    return net
+
+
+def inputs(arm: str, demixed: torch.Tensor, cover: torch.Tensor) -> torch.Tensor:
+    """``(B, 9, H, W)`` views, with each view's coverage interleaved for ``coverage``."""
+    if arm == "plain":
+        return demixed
+    both = torch.stack([demixed, cover.expand_as(demixed)], dim=2)  # (B, 9, 2, H, W)
+    return both.flatten(1, 2)
+
+
+def run(net: ReconNet, views: torch.Tensor, origins: torch.Tensor, size: int) -> torch.Tensor:
+    masks = net.masks_for(origins, size, tuple(views.shape[-2:]))
+    return net.run(views, masks)
+
+
+def psnr(a: np.ndarray, b: np.ndarray, span: float) -> float:
+    return float(10 * np.log10(span**2 / np.mean((a - b) ** 2)))
+
+
+def evaluate(net: ReconNet, arm: str, data: TrainingData, frames: list[int],
+             cover: torch.Tensor, gains: PatchDataset) -> dict[str, float]:  # fmt: skip
+    """Mean PSNR over whole validation sub-views: strips, centre (the middle half), all."""
+    size = data.system.sub_view_size
+    centre = slice(size // 4, 3 * size // 4)
+    scores = []
+    net.eval()
+    with torch.no_grad():
+        for frame in frames:
+            gain = gains.gain(frame)
+            demixed = data.read(data.demixed[frame])[None] * gain
+            truth = data.read(data.objects[frame]).numpy() * gain
+            out = run(net, inputs(arm, demixed, cover[None]), torch.tensor([[0, 0]]), size)
+            out = out[0, 0].clamp_min(0).numpy()
+            span = float(truth.max() - truth.min()) or 1.0
+            strips = np.concatenate([out[:, :STRIP], out[:, -STRIP:]], axis=1)
+            true_strips = np.concatenate([truth[:, :STRIP], truth[:, -STRIP:]], axis=1)
+            scores.append((psnr(strips, true_strips, span),
+                           psnr(out[centre, centre], truth[centre, centre], span),
+                           psnr(out, truth, span)))  # fmt: skip
+    net.train()
+    strips, middle, whole = np.mean(scores, axis=0)
+    return {"strips": strips, "centre": middle, "all": whole, "gap": middle - strips}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--data", type=Path, default=Path("runs/data-v2"))
+    parser.add_argument("--out", type=Path, default=Path("runs/fusion"))
+    parser.add_argument("--steps", type=int, default=1500)
+    parser.add_argument("--every", type=int, default=250, help="evaluate every N steps")
+    parser.add_argument("--batch", type=int, default=8)
+    parser.add_argument("--val-frames", type=int, default=16)
+    parser.add_argument("--arms", nargs="+", default=["plain", "coverage"])
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    data = TrainingData(args.data, allow_partial=True)
+    size = data.system.sub_view_size
+    cover = sensor_coverage(data.system)  # (9, S, S)
+    patches = PatchDataset(data, data.train_frames, noise=False, normalise_exposure=True,
+                           patch=96)  # fmt: skip
+    val = data.val_frames[: args.val_frames]
+    args.out.mkdir(parents=True, exist_ok=True)
+    log = {arm: [] for arm in args.arms}
+    nets = {arm: build(arm, args.seed) for arm in args.arms}
+    optims = {arm: torch.optim.Adam(net.parameters(), lr=8e-4) for arm, net in nets.items()}
+    scheds = {arm: torch.optim.lr_scheduler.OneCycleLR(opt, 8e-4, total_steps=args.steps,
+                                                        pct_start=0.1)
+              for arm, opt in optims.items()}  # fmt: skip
+    rng = np.random.default_rng(args.seed)
+    seconds = dict.fromkeys(args.arms, 0.0)
+    for step in range(1, args.steps + 1):
+        batch = [patches[int(i)] for i in rng.integers(0, len(patches), args.batch)]
+        demixed = torch.stack([b["demixed"] for b in batch])
+        target = torch.stack([b["object"] for b in batch])
+        origins = torch.stack([b["origin"] for b in batch])
+        crops = torch.stack([cover[:, r:r + 96, c:c + 96] for r, c in origins.tolist()])
+        for arm, net in nets.items():  # the same patches for both arms
+            start = time.process_time()
+            with torch.autocast("cpu", dtype=torch.bfloat16):
+                out = run(net, inputs(arm, demixed, crops), origins, size)
+            loss = stage_loss(out.float(), target, 1.0, 100.0)
+            optims[arm].zero_grad()
+            loss.backward()
+            nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+            optims[arm].step()
+            scheds[arm].step()
+            seconds[arm] += time.process_time() - start
+        if step % args.every == 0 or step == args.steps:
+            for arm, net in nets.items():
+                scores = evaluate(net, arm, data, val, cover, patches)
+                log[arm].append({"step": step, "cpu_s": round(seconds[arm], 1), **scores})
+                print(f"step {step} {arm:9s} " + " ".join(f"{k} {v:.2f}" for k, v in
+                                                          scores.items()), flush=True)  # fmt: skip
+            (args.out / "log.json").write_text(json.dumps(log, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
