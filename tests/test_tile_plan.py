@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -38,6 +39,37 @@ def test_reconstructor_uses_the_plan_and_keeps_explicit_settings():
     assert (rec.grid.patch, rec.grid.stride, rec.batch_size) == (96, 48, 3)
     small = Reconstructor(model, system, tile_memory_bytes=2**26)
     assert small.grid.patch < system.sub_view_size
+
+
+def test_a_measured_overlap_replaces_the_receptive_radius(tiny_system, tiny_model_config,
+                                                         tmp_path):
+    """The overlap ``bench/tile_overlap.py --record`` writes into a model file is the one
+    its planned tiles use; a file without one overlaps by the receptive radius."""
+    import sys
+
+    from svcode_core.methods.model_file import load_model, record_extra, save_model
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    from tile_overlap import overlap_check
+
+    path = save_model(tmp_path / "m.safetensors", SVCoDe(tiny_model_config), tiny_system)
+    model, _ = load_model(path)
+    assert model.overlap_check == {}
+    tile, stride, _ = plan_tiles(model, 240, model.working_bytes_per_pixel() * 64**2)
+    assert tile - stride == min(math.ceil(model.receptive_radius() / model.stride)
+                                * model.stride, tile // 2)  # fmt: skip
+    rows = [{"regime": r, "overlap": o, "psnr": p, "per_scene": {"a": {}}}
+            for r, o, p in [("m", 30, 20.0), ("m", 16, 19.96), ("m", 8, 19.9),
+                            ("x", 30, 10.0), ("x", 16, 10.1), ("x", 8, 10.2)]]  # fmt: skip
+    check = overlap_check(rows, radius=30, tile=64)
+    assert check["overlap"] == 16  # 8 loses 0.1 dB in regime m
+    record_extra(path, overlap_check=check)
+    model, _ = load_model(path)
+    measured = plan_tiles(model, 240, model.working_bytes_per_pixel() * 64**2)
+    assert measured[0] == tile and measured[0] - measured[1] == 16
+    rec = Reconstructor.from_weights(path, tiny_system, tile_memory_bytes=
+                                     model.working_bytes_per_pixel() * 32**2)  # fmt: skip
+    assert rec.grid.patch - rec.grid.stride == min(16, rec.grid.patch // 2)
 
 
 WHOLE_TILE_POOLING = pytest.mark.xfail(

@@ -205,8 +205,10 @@ def load_model(
     if len(dtypes) == 1:
         model.to(dtypes.pop())
     model.load_state_dict(state, strict=True)
-    # what the file says of reduced precision (read by methods.svcode.auto_precision)
+    # what the file says of reduced precision (read by methods.svcode.auto_precision) and
+    # of the overlap its tiles need (read by methods.svcode.plan_tiles)
     model.precision_check = meta["extra"].get("precision_check", {})
+    model.overlap_check = meta["extra"].get("overlap_check", {})
     return model.to(device).eval(), stored
 
 

@@ -73,7 +73,7 @@ from .tiling import (
 )
 
 __all__ = ["AUTO_TOLERANCE_DB", "Reconstructor", "TilePlan", "auto_precision", "bf16_network",
-           "features_in", "plan_tiles", "tile_plan"]
+           "features_in", "plan_tiles", "tile_overlap", "tile_plan"]
 
 _SVCODE = registry.method("svcode")
 _DEFAULTS = _SVCODE.defaults
@@ -158,10 +158,10 @@ def plan_tiles(
     The whole sub-view is one tile when its working memory
     (:meth:`~svcode_core.network.SVCoDe.working_bytes_per_pixel`) fits in
     ``memory_bytes``: nothing is computed twice and there are no seams. Otherwise the
-    tile is the largest multiple of the model stride that fits, and tiles overlap by the
-    model's receptive radius (rounded up to the stride, at most half a tile), so every
-    pixel is computed about ``(P / (P - overlap))²`` times instead of 4 times at stride
-    ``P / 2``; as many tiles as fit run in one batch.
+    tile is the largest multiple of the model stride that fits, and tiles overlap by
+    :func:`tile_overlap` (rounded up to the stride, at most half a tile), so every pixel is
+    computed about ``(P / (P - overlap))²`` times instead of 4 times at stride ``P / 2``;
+    as many tiles as fit run in one batch.
 
     Parameters
     ----------
@@ -194,9 +194,30 @@ def plan_tiles(
         return sub_view_size, sub_view_size, 1
     side = max(step, math.isqrt(memory_bytes // per_pixel) // step * step)
     side = min(side, sub_view_size)
-    overlap = min(math.ceil(model.receptive_radius() / step) * step, side // 2)
+    overlap = min(math.ceil(tile_overlap(model) / step) * step, side // 2)
     batch = max(1, memory_bytes // (side**2 * per_pixel))
     return side, max(side - overlap, 1), batch
+
+
+def tile_overlap(model: torch.nn.Module) -> int:
+    """Sub-view pixels by which planned tiles overlap: the overlap measured for the model
+    (``overlap_check`` in its file's ``extra`` metadata, written by ``bench/tile_overlap.py
+    --record``: the smallest that loses at most :data:`AUTO_TOLERANCE_DB` of PSNR on the
+    held-out scenes against the receptive radius), else the receptive radius, where tiled
+    and whole outputs agree but for the channel attention.
+
+    Examples
+    --------
+    >>> from svcode_core.network import ModelConfig, SVCoDe
+    >>> model = SVCoDe(ModelConfig.mini())
+    >>> tile_overlap(model) == model.receptive_radius()
+    True
+    >>> model.overlap_check = {"overlap": 24}
+    >>> tile_overlap(model)
+    24
+    """
+    measured = getattr(model, "overlap_check", {}).get("overlap")
+    return model.receptive_radius() if measured is None else int(measured)
 
 
 class TilePlan(NamedTuple):
