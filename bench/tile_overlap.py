@@ -52,14 +52,14 @@ def main() -> None:
     system = SystemConfig.preset(args.system)
     model, _ = load_model(args.weights, system)
     model.overlap_check = {}  # measured from the radius, whatever the file recorded
-    tile, stride, _ = plan_tiles(model, system.sub_view_size)
+    tile, stride, batch = plan_tiles(model, system.sub_view_size)
     if stride == tile:
         raise SystemExit(f"{args.weights.name}: a whole {system.sub_view_size}-px sub-view is "
                          "one planned tile: there is no overlap to choose")
     radius = tile - stride
     overlaps = [radius, *(o for o in CANDIDATES if o < radius)]
     reconstructors = {o: build_reconstructor("svcode", system, args.weights, precision="fp32",
-                                             tile_size=tile, stride=tile - o)
+                                             tile_size=tile, stride=tile - o, batch_size=batch)
                       for o in overlaps}  # fmt: skip
     nominal = Simulator(system)
     rows = []

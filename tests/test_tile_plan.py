@@ -39,6 +39,12 @@ def test_reconstructor_uses_the_plan_and_keeps_explicit_settings():
     assert (rec.grid.patch, rec.grid.stride, rec.batch_size) == (96, 48, 3)
     small = Reconstructor(model, system, tile_memory_bytes=2**26)
     assert small.grid.patch < system.sub_view_size
+    # a given tile without a batch: as many as fit the budget, at most 8, at least one
+    assert Reconstructor(model, system, tile_size=96).batch_size == 8
+    per_tile = 96**2 * model.working_bytes_per_pixel()
+    assert Reconstructor(model, system, tile_size=96,
+                         tile_memory_bytes=3 * per_tile).batch_size == 3  # fmt: skip
+    assert Reconstructor(model, system, tile_size=192, tile_memory_bytes=2**20).batch_size == 1
 
 
 def test_a_measured_overlap_replaces_the_receptive_radius(tiny_system, tiny_model_config,

@@ -243,7 +243,9 @@ def tile_plan(
     is planned): what ``svcode reconstruct`` and the plugin run and estimate.
 
     Without ``tile_size``, an SV-CoDe model's tiles come from :func:`plan_tiles` and other
-    models (or ``None``) take ``system.patch_size``; a given tile is strided by half.
+    models (or ``None``) take ``system.patch_size``; a given tile is strided by half. Without
+    ``batch_size``, up to 8 tiles a batch, as many as fit ``tile_memory_bytes`` (at least
+    one).
 
     Examples
     --------
@@ -265,12 +267,13 @@ def tile_plan(
     elif stride is None:
         stride = max(tile_size // 2, 1)
     grid = TileGrid(system.sub_view_size, tile_size, stride)
-    batch_size = planned_batch if batch_size is None else batch_size
-    working = 0
+    per_tile = 0
     if hasattr(model, "working_bytes_per_pixel"):
         side = math.ceil(tile_size / model.stride) * model.stride
-        working = batch_size * side**2 * model.working_bytes_per_pixel(PRECISIONS[precision])
-    return TilePlan(grid, batch_size, working)
+        per_tile = side**2 * model.working_bytes_per_pixel(PRECISIONS[precision])
+        planned_batch = max(1, min(planned_batch, tile_memory_bytes // per_tile))
+    batch_size = planned_batch if batch_size is None else batch_size
+    return TilePlan(grid, batch_size, batch_size * per_tile)
 
 
 def _relay(
