@@ -78,7 +78,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "the checkout's committed report (bench/results) only when named with --out, and "
         "then only a full run or --merge. At paper scale (cm2-v2) the plan is "
         "smaller: three scenes, two regimes, LSV-ADMM at 10 iterations and at SV-CoDe's "
-        "time, Wiener, SV-CoDe (about an hour on one thread).",
+        "time, Wiener, SV-CoDe (about half an hour on one thread).",
     )
     # the regimes are the benchmark's (its light package, not the engine); without it, run()
     # says how to get the engine
