@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from probes import write_report
+from probes import add_check_arguments, write_report
 
 from svcode_bench import REGIMES
 from svcode_bench.regimes import SCENES, make_scenes, regime_simulator
@@ -34,7 +34,6 @@ from svcode_core.methods.model_file import read_model_metadata, record_extra
 from svcode_core.physics.simulate import Simulator
 from svcode_core.pretrained import require_bundled_weights
 
-RESULTS = Path(__file__).parent / "results"
 PRECISIONS = ("fp32", "bf16")
 
 
@@ -45,10 +44,7 @@ def main() -> None:
     parser.add_argument("--regimes", nargs="+", default=list(REGIMES), choices=list(REGIMES))
     parser.add_argument("--scenes", nargs="+", default=[name for name, *_ in SCENES],
                         choices=[name for name, *_ in SCENES])
-    parser.add_argument("--record", action="store_true",
-                        help="write the bf16 loss into the model file")
-    parser.add_argument("--out", type=Path, default=RESULTS / "precision",
-                        help="output stem (.json and .md; default bench/results/precision)")
+    add_check_arguments(parser, "the bf16 loss", "precision")
     args = parser.parse_args()
     system = SystemConfig.preset(args.system)
     weights = args.weights or require_bundled_weights(system)

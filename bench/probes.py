@@ -1,8 +1,10 @@
-"""What the probe scripts (``ghosts.py``, ``ring_gap.py``) share: the reconstructors they
-compare, with their labels, and how they write a report."""
+"""What the probe scripts (``ghosts.py``, ``ring_gap.py``, ``precision.py``,
+``tile_overlap.py``) share: the reconstructors they compare, with their labels, and how
+they write a report."""
 
 from __future__ import annotations
 
+import argparse
 import json
 from collections.abc import Callable
 from pathlib import Path
@@ -21,6 +23,8 @@ from svcode_core.pretrained import require_bundled_weights
 
 #: raw frame ``(H, W)`` to the ``(S, S)`` object estimate
 Reconstruct = Callable[[np.ndarray], np.ndarray]
+#: the committed reports
+RESULTS = Path(__file__).parent / "results"
 
 
 def svcode_methods(system: SystemConfig, weights: list[Path], knob: str = "",
@@ -83,6 +87,14 @@ def admm_auto(system: SystemConfig) -> BaseReconstructor:
 def realistic_simulator(system: SystemConfig) -> Simulator:
     """The realistic regime's departed instrument (the methods are given ``system``)."""
     return Simulator(system, departures=Departures.named(REGIMES["realistic"], system))
+
+
+def add_check_arguments(parser: argparse.ArgumentParser, what: str, name: str) -> None:
+    """``--record`` (write ``what`` into the model file) and ``--out`` (the report's stem,
+    default ``bench/results/<name>``) of a script that measures a model file."""
+    parser.add_argument("--record", action="store_true", help=f"write {what} into the model file")
+    parser.add_argument("--out", type=Path, default=RESULTS / name,
+                        help=f"output stem (.json and .md; default bench/results/{name})")
 
 
 def write_report(rows: list[dict], out: Path,

@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from probes import write_report
+from probes import add_check_arguments, write_report
 
 from svcode_bench.regimes import PAPER, make_scenes, regime_simulator
 from svcode_core.config import SystemConfig
@@ -33,7 +33,6 @@ from svcode_core.methods.model_file import load_model, record_extra
 from svcode_core.methods.svcode import AUTO_TOLERANCE_DB, plan_tiles, tile_overlap
 from svcode_core.physics.simulate import Simulator
 
-RESULTS = Path(__file__).parent / "results"
 #: overlaps tried below the radius (sub-view pixels; rounded up to the model's stride)
 CANDIDATES = (256, 128, 64)
 
@@ -44,10 +43,7 @@ def main() -> None:
     parser.add_argument("--system", default="cm2-v2", help="preset (default cm2-v2)")
     parser.add_argument("--regimes", nargs="+", default=["matched", "realistic"])
     parser.add_argument("--scenes", nargs="+", default=list(PAPER.scenes))
-    parser.add_argument("--record", action="store_true",
-                        help="write the chosen overlap into the model file")
-    parser.add_argument("--out", type=Path, default=RESULTS / "tile_overlap",
-                        help="output stem (.json and .md; default bench/results/tile_overlap)")
+    add_check_arguments(parser, "the chosen overlap", "tile_overlap")
     args = parser.parse_args()
     system = SystemConfig.preset(args.system)
     model, _ = load_model(args.weights, system)
