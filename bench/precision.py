@@ -22,10 +22,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from probes import add_check_arguments, write_report
+from probes import add_check_arguments, add_scene_arguments, planned_scenes, write_report
 
-from svcode_bench import REGIMES
-from svcode_bench.regimes import SCENES, make_scenes, regime_simulator
+from svcode_bench.regimes import make_scenes, regime_simulator
 from svcode_core.config import SystemConfig
 from svcode_core.evaluation.metrics import psnr, ssim
 from svcode_core.methods.base import native_bf16
@@ -41,12 +40,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--weights", type=Path, help="model file (default: the bundled one)")
     parser.add_argument("--system", default="cm2-mini", help="preset (default cm2-mini)")
-    parser.add_argument("--regimes", nargs="+", default=list(REGIMES), choices=list(REGIMES))
-    parser.add_argument("--scenes", nargs="+", default=[name for name, *_ in SCENES],
-                        choices=[name for name, *_ in SCENES])
+    add_scene_arguments(parser)
     add_check_arguments(parser, "the bf16 loss", "precision")
     args = parser.parse_args()
     system = SystemConfig.preset(args.system)
+    regimes, scene_names = planned_scenes(args, system)
     weights = args.weights or require_bundled_weights(system)
     read_model_metadata(weights)  # a model file, or a clear error before any work
     if not native_bf16(torch.device("cpu")):
@@ -56,9 +54,8 @@ def main() -> None:
                       for p in PRECISIONS}
     nominal = Simulator(system)
     rows = []
-    for regime in args.regimes:
-        scenes = make_scenes(system, tuple(args.scenes), regime_simulator(system, regime,
-                                                                          nominal))
+    for regime in regimes:
+        scenes = make_scenes(system, scene_names, regime_simulator(system, regime, nominal))
         per_scene = {p: {} for p in PRECISIONS}
         seconds = dict.fromkeys(PRECISIONS, 0.0)
         for scene in scenes:

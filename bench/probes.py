@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from svcode_bench.regimes import ADMM_RANK, REGIMES, model_label
+from svcode_bench.regimes import ADMM_RANK, REGIMES, SCENES, model_label, plan_for
 from svcode_core.config import SystemConfig
 from svcode_core.methods.base import BaseReconstructor
 from svcode_core.methods.build import build_reconstructor
@@ -95,6 +95,25 @@ def add_check_arguments(parser: argparse.ArgumentParser, what: str, name: str) -
     parser.add_argument("--record", action="store_true", help=f"write {what} into the model file")
     parser.add_argument("--out", type=Path, default=RESULTS / name,
                         help=f"output stem (.json and .md; default bench/results/{name})")
+
+
+def add_scene_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--regimes`` and ``--scenes`` of the benchmark's; by default the plan's for the
+    system (:func:`planned_scenes`)."""
+    parser.add_argument("--regimes", nargs="+", choices=list(REGIMES),
+                        help="default: the benchmark's for the system (every regime; at "
+                        "paper scale matched and realistic)")  # fmt: skip
+    parser.add_argument("--scenes", nargs="+", choices=[name for name, *_ in SCENES],
+                        help="default: the benchmark's for the system (every scene; at "
+                        "paper scale cells, neurons, ihc)")  # fmt: skip
+
+
+def planned_scenes(args: argparse.Namespace, system: SystemConfig) -> tuple[tuple[str, ...],
+                                                                            tuple[str, ...]]:
+    """``(regimes, scenes)``: those given, else the benchmark plan's for ``system``
+    (:func:`svcode_bench.regimes.plan_for`)."""
+    plan = plan_for(system)
+    return tuple(args.regimes or plan.regimes), tuple(args.scenes or plan.scenes)
 
 
 def write_report(rows: list[dict], out: Path,

@@ -5,11 +5,11 @@ Where a sub-view does not fit the memory budget as one tile, the planned tiles o
 the model's receptive radius (at most half a tile): at ``cm2-v2``'s scale, for a network on
 a coarse grid, that computes every pixel about four times. The radius is what the
 convolutions can reach, not what they use. This script reconstructs the benchmark's scenes
-(matched and realistic regimes) with the planned tile at the radius's overlap and at
-smaller ones, scores them against the truth, and finds the smallest overlap whose mean
-PSNR in every regime is within 0.05 dB of the radius's (seconds a frame after one warm-up
-frame each). ``--record`` writes it into the
-model file (``overlap_check`` in its metadata), which the planned tiling then uses
+(at paper scale cells, neurons and ``ihc``, matched and realistic) with the planned tile
+at the radius's overlap and at smaller ones, scores them against the truth, and finds the
+smallest overlap whose mean PSNR in every regime is within 0.05 dB of the radius's
+(seconds a frame after one warm-up frame each). ``--record`` writes it into the model file
+(``overlap_check`` in its metadata), which the planned tiling then uses
 (:func:`svcode_core.methods.svcode.tile_overlap`).
 
 Run: ``OMP_NUM_THREADS=1 python bench/tile_overlap.py --weights FILE --system cm2-v2
@@ -24,9 +24,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-from probes import add_check_arguments, write_report
+from probes import add_check_arguments, add_scene_arguments, planned_scenes, write_report
 
-from svcode_bench.regimes import PAPER, make_scenes, regime_simulator
+from svcode_bench.regimes import make_scenes, regime_simulator
 from svcode_core.config import SystemConfig
 from svcode_core.evaluation.metrics import psnr, ssim
 from svcode_core.methods.build import build_reconstructor
@@ -42,11 +42,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--weights", type=Path, required=True, help="SV-CoDe model file")
     parser.add_argument("--system", default="cm2-v2", help="preset (default cm2-v2)")
-    parser.add_argument("--regimes", nargs="+", default=["matched", "realistic"])
-    parser.add_argument("--scenes", nargs="+", default=list(PAPER.scenes))
+    add_scene_arguments(parser)
     add_check_arguments(parser, "the chosen overlap", "tile_overlap")
     args = parser.parse_args()
     system = SystemConfig.preset(args.system)
+    regimes, scene_names = planned_scenes(args, system)
     model, _ = load_model(args.weights, system)
     model.overlap_check = {}  # measured from the radius, whatever the file recorded
     tile, stride, batch = plan_tiles(model, system.sub_view_size)
@@ -60,9 +60,8 @@ def main() -> None:
                       for o in overlaps}  # fmt: skip
     nominal = Simulator(system)
     rows = []
-    for regime in args.regimes:
-        scenes = make_scenes(system, tuple(args.scenes), regime_simulator(system, regime,
-                                                                          nominal))
+    for regime in regimes:
+        scenes = make_scenes(system, scene_names, regime_simulator(system, regime, nominal))
         if not rows:  # masks made and kept, kernels chosen: timed as in a recording
             for reconstructor in reconstructors.values():
                 reconstructor.reconstruct(scenes[0].raw)

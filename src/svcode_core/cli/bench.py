@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import json
 import sys
 from pathlib import Path
 from types import ModuleType
@@ -140,8 +141,6 @@ def check_out(args: argparse.Namespace, system: str, regimes: tuple[str, ...]) -
     ValueError
         With what to do instead.
     """
-    import json
-
     earlier = args.out / "regimes.json"
     if earlier.is_file():
         theirs = json.loads(earlier.read_text(encoding="utf-8")).get("system")
