@@ -31,6 +31,7 @@ from torch.profiler import ProfilerActivity, profile
 from torch.utils.flop_counter import FlopCounterMode
 
 from svcode_core import SystemConfig
+from svcode_core.config import N_LENSES
 from svcode_core.methods.build import build_reconstructor
 from svcode_core.methods.model_file import load_model
 from svcode_core.network.compiled import compile_model
@@ -113,7 +114,8 @@ def training_batch(weights: str | None = None, patch: int = 96, batch: int = 8):
     (the model or a compiled copy), its forward under bf16 autocast for ``bf16``."""
     model, system = load_model(weights or bundled_weights("cm2-mini"))
     model.train()
-    views = torch.rand(batch, model.demix.intro.in_channels, patch, patch,
+    channels = N_LENSES * model.demix.views_per_lens  # the views, with their lens context
+    views = torch.rand(batch, channels, patch, patch,
                        generator=torch.Generator().manual_seed(0))
     origins = torch.tensor([[48, 96]] * batch)
 

@@ -88,9 +88,10 @@ class TrainConfig:
         on others); the loss, the weights and validation stay float32.
     compile : bool
         Run the training steps through :func:`torch.compile` (needs a C++ compiler on the
-        CPU; the first step compiles for minutes, validation runs uncompiled). On a CPU
-        it pays in float32; a bf16 step is compiled with 256-bit vectors
-        (:func:`~svcode_core.network.compiled.compile_model`) and is slower.
+        CPU; the first step compiles for minutes, validation runs uncompiled). A bf16
+        step is compiled with 256-bit vectors on a CPU
+        (:func:`~svcode_core.network.compiled.compile_model`): it pays only on networks
+        whose convolutions dominate the step.
     patch_size : int or None
         SV-CoDe's training and validation patch side, on a grid of half that stride;
         ``None``: the system's ``patch_size`` and ``patch_stride``. Not for the learned

@@ -215,9 +215,9 @@ class Trainer:
         # one shape per step (drop_last), so one graph; validation stays uncompiled
         bf16_on_cpu = self.autocast and self.device.type == "cpu"
         if bf16_on_cpu and config.compile:
-            warnings.warn("bf16 steps compiled on a CPU run 256-bit code (compile_model) and "
-                          "are slower than float32 compiled: train in float32 with --compile, "
-                          "or in bf16 without it", stacklevel=2)
+            warnings.warn("bf16 steps compiled on a CPU run 256-bit code (compile_model): "
+                          "on narrow networks slower than float32 compiled (the command-line "
+                          "guide, Training on a CPU)", stacklevel=2)
         self.train_net = compile_model(self.net, bf16_on_cpu) if config.compile else self.net
 
         self.train_set = self.task.dataset(data, data.train_frames, False, config.seed,
