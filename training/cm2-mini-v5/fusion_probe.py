@@ -11,6 +11,9 @@ from the same start: ``plain`` (each view one input channel, as the model has it
 :func:`svcode_core.physics.geometry.sensor_coverage`), then scores both on whole
 validation sub-views: PSNR in the strips, in the centre and over the field.
 
+``--edge-share`` draws that share of every batch from the patches that touch the left or
+right edge, so that the strips weigh in training what they weigh in the field.
+
 Usage (from the repository root; the mini data of ``training/resume.sh``, or fewer frames
 of the same recipe)::
 
@@ -36,6 +39,7 @@ from svcode_core.training.loss import stage_loss
 from svcode_core.training.sampler import PatchDataset
 
 STRIP = 16  # px: the columns at each side that only six lenses see
+MARGIN = 16  # px: the ``interior`` arm's loss leaves out this much of inner patch edges
 
 
 def build(arm: str, seed: int) -> ReconNet:
@@ -43,7 +47,7 @@ def build(arm: str, seed: int) -> ReconNet:
     channels per view (the view, its coverage)."""
     torch.manual_seed(seed)
     net = ReconNet(ModelConfig.mini())
-    if arm == "coverage":
+    if arm == "coverage":  # (``interior`` differs from ``plain`` only in its loss)
         torch.manual_seed(seed)
         net.intro = nn.Conv2d(2, net.intro.out_channels, 3, padding=1)
     return net
@@ -51,10 +55,24 @@ def build(arm: str, seed: int) -> ReconNet:
 
 def inputs(arm: str, demixed: torch.Tensor, cover: torch.Tensor) -> torch.Tensor:
     """``(B, 9, H, W)`` views, with each view's coverage interleaved for ``coverage``."""
-    if arm == "plain":
+    if arm != "coverage":
         return demixed
     both = torch.stack([demixed, cover.expand_as(demixed)], dim=2)  # (B, 9, 2, H, W)
     return both.flatten(1, 2)
+
+
+def interior(origins: torch.Tensor, patch: int, size: int, margin: int) -> torch.Tensor:
+    """``(B, 1, P, P)`` loss mask of the ``interior`` arm: 0 within ``margin`` px of a patch
+    edge that lies inside the sub-view (there the truth depends on views the patch does not
+    hold), 1 elsewhere and along the sub-view's own border, scaled to mean 1."""
+    near = torch.arange(patch) < margin
+    mask = torch.ones(len(origins), 1, patch, patch)
+    for i, (r, c) in enumerate(origins.tolist()):
+        rows = (near & (r > 0)) | (near.flip(0) & (r + patch < size))
+        cols = (near & (c > 0)) | (near.flip(0) & (c + patch < size))
+        mask[i, 0, rows] = 0
+        mask[i, 0, :, cols] = 0
+    return mask / mask.mean()
 
 
 def run(net: ReconNet, views: torch.Tensor, origins: torch.Tensor, size: int) -> torch.Tensor:
@@ -101,6 +119,9 @@ def main() -> None:
     parser.add_argument("--val-frames", type=int, default=16)
     parser.add_argument("--arms", nargs="+", default=["plain", "coverage"])
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--edge-share", type=float, default=0.0,
+                        help="share of each batch drawn from patches that touch the "
+                             "sub-view's left or right edge (0: uniform, as the trainer)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     data = TrainingData(args.data, allow_partial=True)
@@ -117,9 +138,18 @@ def main() -> None:
                                                         pct_start=0.1)
               for arm, opt in optims.items()}  # fmt: skip
     rng = np.random.default_rng(args.seed)
+    edge = np.flatnonzero(np.isin(patches.origins[:, 1], (0, size - patches.patch)))
+    n_edge = round(args.batch * args.edge_share)
     seconds = dict.fromkeys(args.arms, 0.0)
     for step in range(1, args.steps + 1):
-        batch = [patches[int(i)] for i in rng.integers(0, len(patches), args.batch)]
+        if n_edge:  # frame, then origin: edge origins for the first n_edge patches
+            frames = rng.integers(0, len(patches.frames), args.batch)
+            places = np.concatenate([rng.choice(edge, n_edge),
+                                     rng.integers(0, len(patches.origins), args.batch - n_edge)])
+            picks = frames * len(patches.origins) + places
+        else:
+            picks = rng.integers(0, len(patches), args.batch)
+        batch = [patches[int(i)] for i in picks]
         demixed = torch.stack([b["demixed"] for b in batch])
         target = torch.stack([b["object"] for b in batch])
         origins = torch.stack([b["origin"] for b in batch])
@@ -128,7 +158,12 @@ def main() -> None:
             start = time.process_time()
             with torch.autocast("cpu", dtype=torch.bfloat16):
                 out = run(net, inputs(arm, demixed, crops), origins, size)
-            loss = stage_loss(out.float(), target, 1.0, 100.0)
+            if arm == "interior":  # SSIM and squared error only where the truth is held
+                keep = interior(origins, 96, size, MARGIN)
+                loss = stage_loss(out.float() * (keep > 0), target * (keep > 0), 1.0, 100.0,
+                                  keep)
+            else:
+                loss = stage_loss(out.float(), target, 1.0, 100.0)
             optims[arm].zero_grad()
             loss.backward()
             nn.utils.clip_grad_norm_(net.parameters(), 1.0)
