@@ -451,7 +451,7 @@ def test_resume_may_change_compile_but_not_precision(tiny_data, tmp_path, monkey
 
 def test_bf16_compiled_on_a_cpu_is_warned_about(tiny_data, tmp_path, monkeypatch):
     monkeypatch.setattr("svcode_core.training.trainer._cxx_compiler", lambda: "c++")
-    with pytest.warns(UserWarning, match="train in float32 with --compile"):
+    with pytest.warns(UserWarning, match="256-bit code"):
         _trainer(tiny_data, tmp_path, compile=True, precision="bf16")
 
 
