@@ -31,14 +31,14 @@ import numpy as np
 import torch
 from torch import nn
 
+from svcode_core.evaluation.metrics import edge_columns, psnr_from_mse
 from svcode_core.network import ModelConfig
 from svcode_core.network.models import ReconNet
 from svcode_core.physics.geometry import sensor_coverage
 from svcode_core.training.dataset import TrainingData
-from svcode_core.training.loss import stage_loss
+from svcode_core.training.loss import EDGE_STRIP, stage_loss
 from svcode_core.training.sampler import PatchDataset
 
-STRIP = 16  # px: the columns at each side that only six lenses see
 MARGIN = 16  # px: the ``interior`` arm's loss leaves out this much of inner patch edges
 
 
@@ -81,7 +81,7 @@ def run(net: ReconNet, views: torch.Tensor, origins: torch.Tensor, size: int) ->
 
 
 def psnr(a: np.ndarray, b: np.ndarray, span: float) -> float:
-    return float(10 * np.log10(span**2 / np.mean((a - b) ** 2)))
+    return float(psnr_from_mse(np.mean((a - b) ** 2), span))
 
 
 def evaluate(net: ReconNet, arm: str, data: TrainingData, frames: list[int],
@@ -89,6 +89,7 @@ def evaluate(net: ReconNet, arm: str, data: TrainingData, frames: list[int],
     """Mean PSNR over whole validation sub-views: strips, centre (the middle half), all."""
     size = data.system.sub_view_size
     centre = slice(size // 4, 3 * size // 4)
+    in_strips = edge_columns(size, EDGE_STRIP)
     scores = []
     net.eval()
     with torch.no_grad():
@@ -99,9 +100,7 @@ def evaluate(net: ReconNet, arm: str, data: TrainingData, frames: list[int],
             out = run(net, inputs(arm, demixed, cover[None]), torch.tensor([[0, 0]]), size)
             out = out[0, 0].clamp_min(0).numpy()
             span = float(truth.max() - truth.min()) or 1.0
-            strips = np.concatenate([out[:, :STRIP], out[:, -STRIP:]], axis=1)
-            true_strips = np.concatenate([truth[:, :STRIP], truth[:, -STRIP:]], axis=1)
-            scores.append((psnr(strips, true_strips, span),
+            scores.append((psnr(out[in_strips], truth[in_strips], span),
                            psnr(out[centre, centre], truth[centre, centre], span),
                            psnr(out, truth, span)))  # fmt: skip
     net.train()
