@@ -9,8 +9,13 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from svcode_core.config import SystemConfig
-from svcode_core.methods.model_file import load_model, read_model_metadata, save_model
+from svcode_core.config import ConfigError, SystemConfig
+from svcode_core.methods.model_file import (
+    load_model,
+    read_model_metadata,
+    record_pool_window,
+    save_model,
+)
 from svcode_core.network import ModelConfig, ReconNet, SVCoDe
 
 TINY = ModelConfig(
@@ -50,6 +55,20 @@ def test_stage_models_round_trip(tmp_path, tiny_system):
     model = ReconNet(TINY)
     loaded, _ = load_model(save_model(tmp_path / "recon.safetensors", model, tiny_system))
     assert isinstance(loaded, ReconNet)
+
+
+def test_a_recorded_pool_window_is_loaded_and_the_weights_kept(saved):
+    path, model, system = saved
+    record_pool_window(path, 32)
+    loaded, _ = load_model(path, system)
+    assert loaded.model_config == TINY.replace(pool_window=32)
+    assert all(stage.config.pool_window == 32 for stage in (loaded.demix, loaded.recon))
+    reference = model.state_dict()
+    assert all(torch.equal(v, reference[k]) for k, v in loaded.state_dict().items())
+    assert read_model_metadata(path)["extra"] == {"epochs": 3}
+    with pytest.raises(ConfigError, match="pool_window"):
+        record_pool_window(path, -1)
+    assert read_model_metadata(path)["model_config"].pool_window == 32
 
 
 def test_pickles_are_refused(tmp_path, saved):

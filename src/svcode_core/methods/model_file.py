@@ -29,7 +29,10 @@ from ..network.models import DemixNet, ReconNet, SVCoDe
 from .base import resolve_device
 from .learned.models import LEARNED_MODELS
 
-__all__ = ["FORMAT", "load_model", "read_model_metadata", "record_extra", "save_model"]
+__all__ = [
+    "FORMAT", "load_model", "read_model_metadata", "record_extra", "record_pool_window",
+    "save_model",
+]
 
 FORMAT = "svcode-model-1"
 _MAX_HEADER = 100 * 2**20
@@ -129,13 +132,33 @@ def read_model_metadata(path: str | Path) -> dict[str, Any]:
 def record_extra(path: str | Path, **items: Any) -> None:
     """Add ``items`` to a model file's ``extra`` metadata, the weights kept bit for bit (the
     file is replaced whole, never left half written)."""
+    _rewrite_metadata(path, lambda meta: {
+        **meta, "extra": json.dumps({**json.loads(meta.get("extra", "{}")), **items})})
+
+
+def record_pool_window(path: str | Path, window: int) -> None:
+    """Set an SV-CoDe model file's :attr:`~svcode_core.network.config.ModelConfig.pool_window`,
+    the weights kept bit for bit: an inference setting (training on patches of at most
+    ``window`` pixels pools alike either way), chosen for a model by measuring it."""
+    architecture = read_model_metadata(path)["architecture"]
+    if architecture not in ("SVCoDe", "DemixNet", "ReconNet"):
+        raise ValueError(f"{path}: a {architecture} model has no channel attention to pool")
+    ModelConfig().replace(pool_window=window)  # a valid window, or a clear error
+
+    def update(meta: dict[str, str]) -> dict[str, str]:
+        config = json.loads(meta["model_config"])
+        return {**meta, "model_config": json.dumps({**config, "pool_window": window})}
+
+    _rewrite_metadata(path, update)
+
+
+def _rewrite_metadata(path: str | Path, update: Callable[[dict], dict]) -> None:
     path = Path(path)
     read_model_metadata(path)  # a model file, or a clear error
     header = _read_header(path)["__metadata__"]
-    extra = {**json.loads(header.get("extra", "{}")), **items}
     state = load_file(str(path), device="cpu")
     partial = path.with_name(path.name + ".partial")
-    save_file(state, str(partial), metadata={**header, "extra": json.dumps(extra)})
+    save_file(state, str(partial), metadata=update(header))
     partial.replace(path)
 
 
