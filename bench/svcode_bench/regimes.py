@@ -129,6 +129,9 @@ class Plan:
     footprint: bool
     #: LSV-ADMM also read out, frame by frame, at SV-CoDe's own time (:func:`equal_time_row`)
     equal_time: bool
+    #: SV-CoDe's precision in its first row: float32 (alike on every machine) or ``auto``
+    #: (what the command runs by default here)
+    svcode_precision: str = "fp32"
 
 
 FULL = Plan("full", tuple(s[0] for s in SCENES), tuple(REGIMES), (10, 20, 50), True,
@@ -137,7 +140,7 @@ QUICK = Plan("quick", ("cells", "ihc"), tuple(REGIMES), (10, 30), False, (1e-2,)
              (2, 2), False, False)  # fmt: skip
 #: paper-scale systems: LSV-ADMM's 10 iterations take minutes a frame there
 PAPER = Plan("paper-scale", ("cells", "neurons", "ihc"), ("matched", "realistic"), (10,), False,
-             (1e-2,), (), (1, 1), False, True)  # fmt: skip
+             (1e-2,), (), (1, 1), False, True, "auto")  # fmt: skip
 #: sub-views from this size on are paper-scale (cm2-v2: 2400 px; cm2-mini: 384)
 PAPER_SCALE_SUB_VIEW = 1024
 
@@ -395,6 +398,7 @@ def svcode_rows(
     all_knobs: bool | int = True,
     cache: dict | None = None,
     footprint: bool = True,
+    precision: str = "fp32",
 ) -> list[Row]:
     """SV-CoDe rows over tiling, mask cache, precision and skipping (or the default only).
 
@@ -406,13 +410,14 @@ def svcode_rows(
 
     With ``cache`` (a dict kept across calls) each knob's reconstructor is built and warmed
     up once and reused for the scenes of later regimes. ``footprint`` measures the model's
-    size and memory at S and 2S (in a subprocess: slow) on the first row.
+    size and memory at S and 2S (in a subprocess: slow) on the first row. ``precision`` is
+    the planned row's; a row's label names the precision that ran.
     """
     from svcode_core.methods.svcode import DEFAULT_MASK_CACHE_BYTES
 
     patch = system.patch_size
     planned = {"tile": None, "stride": None, "batch": None, "cache": True,
-               "precision": "fp32", "skip": True}  # fmt: skip
+               "precision": precision, "skip": True}  # fmt: skip
     knobs = [
         planned,
         {**planned, "refine": REFINE_ITERATIONS},  # the only knob with "refine"
@@ -440,8 +445,9 @@ def svcode_rows(
 
         key = ("svcode", str(weights), tuple(knob.items()))
         rec, setup, fresh = _cached(cache, key, build)
-        label = ", ".join(f"{k} {'planned' if v is None else v}" for k, v in knob.items())
-        row = Row(method, label, knob, setup_seconds=setup)
+        ran = {**knob, "precision": rec.precision}  # "auto" resolved
+        label = ", ".join(f"{k} {'planned' if v is None else v}" for k, v in ran.items())
+        row = Row(method, label, ran, setup_seconds=setup)
         rows.append(_score_reconstructor(row, rec, scenes))
         if fresh and footprint and knob is knobs[0]:
             row.footprint = model_footprint(weights, system).to_dict()
@@ -559,7 +565,8 @@ def run_benchmark(
             matched, other = plan.svcode_knobs
             knobs = (all_knobs or matched) if regime == "matched" else other
             main = svcode_rows(weights, system, scenes, all_knobs=knobs, cache=cache,
-                               footprint=plan.footprint)  # fmt: skip
+                               footprint=plan.footprint,
+                               precision=plan.svcode_precision)  # fmt: skip
             new += main
             if trace:  # LSV-ADMM given SV-CoDe's time on each frame
                 new.append(equal_time_row(traced[0], trace, main[0]))
