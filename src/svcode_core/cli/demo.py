@@ -45,6 +45,7 @@ def run(args: argparse.Namespace) -> int:
     from ..methods.svcode import Reconstructor
     from ..outputs import check_outputs
     from ..phantoms import make_object
+    from ..physics.cm2 import simulation_cost
     from ..physics.simulate import Simulator, scene_files
 
     files = [("--out", path) for path in scene_files(args.out).values()]
@@ -60,7 +61,8 @@ def run(args: argparse.Namespace) -> int:
     runs = "twice (a warm-up, then timed)" if warm_up else "once (timed with its set-up)"
     print(f"system {system.name}: sensor {system.sensor_shape}, sub-views "
           f"{system.sub_view_size}², object {args.object} (seed {args.seed}); simulating "
-          f"one frame, then reconstructing it {runs} in {len(rec.grid)} "
+          f"one frame (roughly {duration(simulation_cost(system).seconds)}), then "
+          f"reconstructing it {runs} in {len(rec.grid)} "
           f"tile{'s' * (len(rec.grid) > 1)} ({rec.precision}): roughly "
           f"{duration(estimate * (1 + warm_up))} of reconstruction on this {rec.device.type}",
           flush=True)
