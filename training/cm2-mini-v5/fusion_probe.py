@@ -86,10 +86,12 @@ def psnr(a: np.ndarray, b: np.ndarray, span: float) -> float:
 
 def evaluate(net: ReconNet, arm: str, data: TrainingData, frames: list[int],
              cover: torch.Tensor, gains: PatchDataset) -> dict[str, float]:  # fmt: skip
-    """Mean PSNR over whole validation sub-views: strips, centre (the middle half), all."""
+    """Mean PSNR over whole validation sub-views: the column strips, the row strips (the
+    same border along the top and bottom), the centre (the middle half), all."""
     size = data.system.sub_view_size
     centre = slice(size // 4, 3 * size // 4)
     in_strips = edge_columns(size, EDGE_STRIP)
+    in_rows = in_strips.T & ~in_strips
     scores = []
     net.eval()
     with torch.no_grad():
@@ -101,20 +103,24 @@ def evaluate(net: ReconNet, arm: str, data: TrainingData, frames: list[int],
             out = out[0, 0].clamp_min(0).numpy()
             span = float(truth.max() - truth.min()) or 1.0
             scores.append((psnr(out[in_strips], truth[in_strips], span),
+                           psnr(out[in_rows], truth[in_rows], span),
                            psnr(out[centre, centre], truth[centre, centre], span),
                            psnr(out, truth, span)))  # fmt: skip
     net.train()
-    strips, middle, whole = np.mean(scores, axis=0)
-    return {"strips": strips, "centre": middle, "all": whole, "gap": middle - strips}
+    strips, rows, middle, whole = np.mean(scores, axis=0)
+    return {"strips": strips, "rows": rows, "centre": middle, "all": whole,
+            "gap": middle - strips}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, default=Path("runs/data-v2"))
     parser.add_argument("--out", type=Path, default=Path("runs/fusion"))
-    parser.add_argument("--steps", type=int, default=1500)
+    parser.add_argument("--steps", type=int, default=1500, help="the learning-rate schedule's")
+    parser.add_argument("--until", type=int, help="stop after this step (default: --steps)")
     parser.add_argument("--every", type=int, default=250, help="evaluate every N steps")
     parser.add_argument("--batch", type=int, default=8)
+    parser.add_argument("--patch", type=int, default=96, help="patch size (px)")
     parser.add_argument("--val-frames", type=int, default=16)
     parser.add_argument("--arms", nargs="+", default=["plain", "coverage"])
     parser.add_argument("--seed", type=int, default=0)
@@ -127,7 +133,7 @@ def main() -> None:
     size = data.system.sub_view_size
     cover = sensor_coverage(data.system)  # (9, S, S)
     patches = PatchDataset(data, data.train_frames, noise=False, normalise_exposure=True,
-                           patch=96)  # fmt: skip
+                           patch=args.patch)  # fmt: skip
     val = data.val_frames[: args.val_frames]
     args.out.mkdir(parents=True, exist_ok=True)
     log = {arm: [] for arm in args.arms}
@@ -140,7 +146,7 @@ def main() -> None:
     edge = np.flatnonzero(np.isin(patches.origins[:, 1], (0, size - patches.patch)))
     n_edge = round(args.batch * args.edge_share)
     seconds = dict.fromkeys(args.arms, 0.0)
-    for step in range(1, args.steps + 1):
+    for step in range(1, (args.until or args.steps) + 1):
         if n_edge:  # frame, then origin: edge origins for the first n_edge patches
             frames = rng.integers(0, len(patches.frames), args.batch)
             places = np.concatenate([rng.choice(edge, n_edge),
@@ -152,13 +158,14 @@ def main() -> None:
         demixed = torch.stack([b["demixed"] for b in batch])
         target = torch.stack([b["object"] for b in batch])
         origins = torch.stack([b["origin"] for b in batch])
-        crops = torch.stack([cover[:, r:r + 96, c:c + 96] for r, c in origins.tolist()])
+        p = args.patch
+        crops = torch.stack([cover[:, r:r + p, c:c + p] for r, c in origins.tolist()])
         for arm, net in nets.items():  # the same patches for both arms
             start = time.process_time()
             with torch.autocast("cpu", dtype=torch.bfloat16):
                 out = run(net, inputs(arm, demixed, crops), origins, size)
             if arm == "interior":  # SSIM and squared error only where the truth is held
-                keep = interior(origins, 96, size, MARGIN)
+                keep = interior(origins, p, size, MARGIN)
                 loss = stage_loss(out.float() * (keep > 0), target * (keep > 0), 1.0, 100.0,
                                   keep)
             else:
@@ -169,7 +176,7 @@ def main() -> None:
             optims[arm].step()
             scheds[arm].step()
             seconds[arm] += time.process_time() - start
-        if step % args.every == 0 or step == args.steps:
+        if step % args.every == 0 or step == (args.until or args.steps):
             for arm, net in nets.items():
                 scores = evaluate(net, arm, data, val, cover, patches)
                 log[arm].append({"step": step, "cpu_s": round(seconds[arm], 1), **scores})
