@@ -87,8 +87,9 @@ def test_the_command_records_the_precision_it_chose(bf16_units, tmp_path, tiny_s
     assert "(fp32)" in capsys.readouterr().out
 
 
-def test_the_bundled_model_records_bf16_within_the_tolerance():
-    check = read_model_metadata(require_bundled_weights("cm2-mini"))["extra"]["precision_check"]
+@pytest.mark.parametrize("system", ["cm2-mini", "cm2-v2"])
+def test_the_bundled_models_record_bf16_within_the_tolerance(system):
+    check = read_model_metadata(require_bundled_weights(system))["extra"]["precision_check"]
     assert check["bf16"]["loss_db"] <= AUTO_TOLERANCE_DB
     assert set(check["bf16"]["regimes"]) >= {"matched", "realistic"}
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from svcode_core import Reconstructor, SystemConfig
@@ -21,6 +22,26 @@ def test_the_cm2_mini_model_ships_with_its_card():
     assert path.with_suffix(".md").is_file()
     rec = Reconstructor.pretrained()
     assert rec.system == SystemConfig.preset("cm2-mini")
+
+
+def test_the_cm2_v2_model_ships_with_its_card_and_reconstructs_a_crop():
+    """Light on a 100-px corner of a paper-scale sensor: in 384-px tiles only the tiles
+    that see it run (the others are skipped, 0), and they give a finite, non-negative
+    image that is not all dark."""
+    path = require_bundled_weights("cm2-v2")
+    assert path.stat().st_size <= 25 * 2**20 and path.with_suffix(".md").is_file()
+    system = SystemConfig.preset("cm2-v2")
+    assert len(Reconstructor.pretrained("cm2-v2").grid) > 1  # a frame is planned in tiles
+    rec = Reconstructor.pretrained("cm2-v2", tile_size=384, stride=320)
+    assert rec.system == system
+    assert rec.model.model_config.pool_window == 384  # tiles of any size pool alike
+    frame = np.zeros(system.sensor_shape, np.float32)
+    frame[40:140, 40:140] = np.random.default_rng(0).random((100, 100)) * 0.8
+    result = rec.reconstruct(frame)
+    out = result.reconstruction
+    assert 1 <= result.tiles_run <= 4 and result.tiles_total == len(rec.grid) == 64
+    assert np.isfinite(out).all() and out.min() >= 0 and out.max() > 0
+    assert (out > 0).sum() <= result.tiles_run * 384**2  # only where tiles ran
 
 
 @pytest.mark.slow
@@ -50,6 +71,7 @@ def test_demo_says_what_it_will_cost_first(tmp_path, capsys, monkeypatch, tiny_s
     assert main(["demo", "--system", str(system), "--weights", str(tiny_weights),
                  "--out", str(tmp_path / "demo")]) == 0
     first, *rest = capsys.readouterr().out.splitlines()
-    assert "in 1 tile (fp32): roughly" in first and "of reconstruction on this cpu" in first
+    assert "simulating one frame (roughly " in first and "in 1 tile (fp32): roughly" in first
+    assert "of reconstruction on this cpu" in first
     assert len(calls) == (1 if long_frame else 2)
     assert ("with its set-up" in "".join(rest)) == long_frame

@@ -56,7 +56,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("models", nargs="+", help="model files, or admm")
     parser.add_argument("--out", type=Path, default=Path("runs/whole-frames"))
-    parser.add_argument("--precision", default="bf16", help="for the model files")
+    parser.add_argument("--precision", default="auto",
+                        help="for the model files (default: the command's, auto)")
     args = parser.parse_args()
     for scene, options in SCENES.items():
         folder = args.out / scene

@@ -1,0 +1,28 @@
+#!/usr/bin/env bash
+# Make the bundled cm2-v2 model from a checkpoint of the long run, with the inference
+# settings measured for it, then benchmark it as the package will run it:
+#   1. the channel attention pooled over the training patch (384 px) instead of the whole
+#      tile, so that the output does not depend on the tile size the memory budget plans;
+#   2. the smallest tile overlap within 0.05 dB of the receptive radius's (tile_overlap.py);
+#   3. bf16's loss against float32 on the paper-scale benchmark (precision.py), which
+#      --precision auto reads;
+#   4. the held-out benchmark (svcode bench --system cm2-v2) and the whole frames.
+# About 1.5 hours on one thread. The model card (src/svcode_core/weights/cm2-v2.md) quotes
+# the reports written to training/cm2-v2/bench/.
+# Usage (from the repository root): bash training/cm2-v2/bundle.sh [MODEL]
+set -euo pipefail
+model="${1:-training/cm2-v2/run/best.safetensors}"
+export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}" OMP_WAIT_POLICY="${OMP_WAIT_POLICY:-PASSIVE}"
+here="$(cd "$(dirname "$0")" && pwd)"
+out=src/svcode_core/weights/cm2-v2.safetensors
+work=runs/cm2-v2-bundle.safetensors
+mkdir -p runs
+cp "$model" "$work"
+python -c "import sys; from svcode_core.methods.model_file import record_pool_window as r
+r(sys.argv[1], 384)" "$work"
+python bench/tile_overlap.py --weights "$work" --regimes matched --scenes cells ihc --record \
+  --out "$here/bench/tile_overlap"
+python bench/precision.py --weights "$work" --system cm2-v2 --record --out "$here/bench/precision"
+cp "$work" "$out"
+svcode bench --system cm2-v2 --out "$here/bench"
+python "$here/whole_frames.py" "$out" admm --out runs/whole-frames
