@@ -146,7 +146,8 @@ def main() -> None:
     edge = np.flatnonzero(np.isin(patches.origins[:, 1], (0, size - patches.patch)))
     n_edge = round(args.batch * args.edge_share)
     seconds = dict.fromkeys(args.arms, 0.0)
-    for step in range(1, (args.until or args.steps) + 1):
+    last = args.until or args.steps
+    for step in range(1, last + 1):
         if n_edge:  # frame, then origin: edge origins for the first n_edge patches
             frames = rng.integers(0, len(patches.frames), args.batch)
             places = np.concatenate([rng.choice(edge, n_edge),
@@ -176,7 +177,7 @@ def main() -> None:
             optims[arm].step()
             scheds[arm].step()
             seconds[arm] += time.process_time() - start
-        if step % args.every == 0 or step == (args.until or args.steps):
+        if step % args.every == 0 or step == last:
             for arm, net in nets.items():
                 scores = evaluate(net, arm, data, val, cover, patches)
                 log[arm].append({"step": step, "cpu_s": round(seconds[arm], 1), **scores})

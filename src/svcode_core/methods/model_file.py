@@ -140,16 +140,12 @@ def record_pool_window(path: str | Path, window: int) -> None:
     """Set an SV-CoDe model file's :attr:`~svcode_core.network.config.ModelConfig.pool_window`,
     the weights kept bit for bit: an inference setting (training on patches of at most
     ``window`` pixels pools alike either way), chosen for a model by measuring it."""
-    architecture = read_model_metadata(path)["architecture"]
-    if architecture not in ("SVCoDe", "DemixNet", "ReconNet"):
-        raise ValueError(f"{path}: a {architecture} model has no channel attention to pool")
-    ModelConfig().replace(pool_window=window)  # a valid window, or a clear error
-
-    def update(meta: dict[str, str]) -> dict[str, str]:
-        config = json.loads(meta["model_config"])
-        return {**meta, "model_config": json.dumps({**config, "pool_window": window})}
-
-    _rewrite_metadata(path, update)
+    config = read_model_metadata(path)["model_config"]
+    if not isinstance(config, ModelConfig):
+        raise ValueError(f"{path}: a {type(config).__name__} model has no channel attention "
+                         "to pool")
+    text = config.replace(pool_window=window).to_json()  # a valid window, or a clear error
+    _rewrite_metadata(path, lambda meta: {**meta, "model_config": text})
 
 
 def _rewrite_metadata(path: str | Path, update: Callable[[dict], dict]) -> None:
