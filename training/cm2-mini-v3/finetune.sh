@@ -47,6 +47,8 @@
 set -euo pipefail
 arm="$1"
 here="$(cd "$(dirname "$0")" && pwd)"
+# context-ring4's best epoch: the bundled cm2-mini model (the same weights)
+ring4_best="$here/../../src/svcode_core/weights/cm2-mini.safetensors"
 v2="$here/../cm2-mini-v2"
 base="$v2/run/best.safetensors"
 # mse-long3 and edge differ only in the edge weight
@@ -89,10 +91,10 @@ case "$arm" in
                    --mse-weight 100 --epochs 4 --lr 2e-4 --warmup-steps 100 --seed 9
                    --edge-weight 4 --ring-weight 2);;
   ring4-isolated) export OBJECTS=mixed-isolated
-                  extra=(--init "$here/context-ring4/best.safetensors" --lens-context
+                  extra=(--init "$ring4_best" --lens-context
                          --mse-weight 100 --epochs 4 --lr 2e-4 --warmup-steps 100 --seed 10
                          --edge-weight 4 --ring-weight 4);;
-  reach2) extra=(--init "$here/context-ring4/best.safetensors" "${ring4[@]}" --epochs 6
+  reach2) extra=(--init "$ring4_best" "${ring4[@]}" --epochs 6
                   --seed 11 --lens-context 2);;
   *) echo "finetune: context, mse, context-mse, mse-no-coordgate, mse-no-pe, mse-long, mse-long2, mse-long3, edge, ring2, ring4, ring2-long, context-ring, context-ring4, isolated, ring4-isolated, reach2 or context-ring[4]-no-coordgate|no-pe|reach2" >&2
      exit 2;;
