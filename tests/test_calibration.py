@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import tracemalloc
 
 import numpy as np
 import pytest
@@ -205,6 +206,23 @@ def test_repeated_frames_are_averaged(scan):
     empty[[7, 56]] = dark[0]
     with pytest.raises(CalibrationError, match=r"frames 7, 56 \(averaged\): no spot"):
         calibrate(empty, np.concatenate([positions, positions]), system, dark=dark)
+
+
+def test_the_working_memory_does_not_grow_with_the_frames_of_a_position(scan):
+    # A paper-scale scan is gigabytes: the calibration keeps one float32 mean frame per
+    # position and reads the scan's frames one at a time (float64 copies of the whole stack
+    # made the peak 8x the scan).
+    system, _, positions, frames, dark, _ = scan
+    peaks = []
+    for repeats in (1, 4):
+        stack, where = np.repeat(frames, repeats, axis=0), np.repeat(positions, repeats, axis=0)
+        tracemalloc.start()
+        try:
+            calibrate(stack, where, system, dark=dark, tolerance=TOLERANCE)
+            peaks.append(tracemalloc.get_traced_memory()[1])
+        finally:
+            tracemalloc.stop()
+    assert peaks[1] < 1.05 * peaks[0]  # three more copies of the scan would be +3 × 0.9 MB
 
 
 def test_simulated_bead_between_pixels():

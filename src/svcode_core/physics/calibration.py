@@ -239,10 +239,11 @@ def _check_scan(frames: np.ndarray, positions: np.ndarray, system: SystemConfig,
         n = int(outside[0])
         raise CalibrationError(f"frame {n}: position ({positions[n, 0]:g}, {positions[n, 1]:g}) "
                                f"lies outside the {size}×{size} object grid")
-    bad = np.flatnonzero(~np.isfinite(frames).all(axis=(1, 2)))
-    if bad.size:
-        raise CalibrationError(f"frame {int(bad[0])}: contains NaN or Inf values")
-    saturated = np.flatnonzero((frames >= saturation).any(axis=(1, 2)))
+    # one frame at a time: a paper-scale scan is gigabytes
+    bad = [n for n, frame in enumerate(frames) if not np.isfinite(frame).all()]
+    if bad:
+        raise CalibrationError(f"frame {bad[0]}: contains NaN or Inf values")
+    saturated = np.flatnonzero([(frame >= saturation).any() for frame in frames])
     if saturated.size:
         n = int(saturated[0])
         r, c = np.unravel_index(int(np.argmax(frames[n])), frames.shape[1:])
@@ -347,7 +348,7 @@ def _windows(frames: np.ndarray, corners: np.ndarray, k: int,
     r = np.clip(rows, 0, height - 1)[..., :, None]
     c = np.clip(cols, 0, width - 1)[..., None, :]
     frame = np.arange(n)[:, None, None, None]
-    return np.where(inside, frames[frame, r, c], 0.0), inside
+    return np.where(inside, frames[frame, r, c].astype(np.float64), 0.0), inside
 
 
 def _centroid(windows: np.ndarray) -> np.ndarray:
@@ -487,18 +488,26 @@ def _grid_design(positions: np.ndarray, system: SystemConfig) -> np.ndarray:
     return np.einsum("na,nb->nab", rows, cols).reshape(len(positions), -1)
 
 
-def _average_repeats(frames: np.ndarray, positions: np.ndarray
+def _average_repeats(frames: np.ndarray, positions: np.ndarray, dark: np.ndarray | None
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
-    """The mean frame of every distinct position.
+    """The mean frame of every distinct position, background removed: ``dark``, or else each
+    frame's median.
 
     Returns the distinct positions ``(M, 2)`` (sorted, so the scan's order does not
-    matter), their mean frames ``(M, H, W)``, the number of frames of each ``(M,)`` and
-    the index of every frame's position ``(N,)``.
+    matter), their mean frames ``(M, H, W)`` in float32 (summed in float64 one frame at a
+    time, so that a paper-scale scan costs one float32 copy), the number of frames of each
+    ``(M,)`` and the index of every frame's position ``(N,)``.
     """
     distinct, which, counts = np.unique(positions, axis=0, return_inverse=True,
                                         return_counts=True)  # fmt: skip
     which = which.ravel()
-    means = np.stack([frames[which == m].mean(axis=0) for m in range(len(distinct))])
+    means = np.empty((len(distinct), *frames.shape[1:]), np.float32)
+    for m in range(len(distinct)):
+        total = np.zeros(frames.shape[1:])
+        for n in np.flatnonzero(which == m):
+            frame = np.asarray(frames[n], np.float64)
+            total += frame - (np.median(frame) if dark is None else dark)
+        means[m] = total / counts[m]
     return distinct, means, counts, which
 
 
@@ -602,7 +611,6 @@ def calibrate(
     if saturation is None:  # integer camera data saturate at the type's full scale
         integer = np.issubdtype(frames.dtype, np.integer)
         saturation = float(np.iinfo(frames.dtype).max) if integer else system.noise.saturation
-    frames = frames.astype(np.float64)
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
     saturation = float(saturation)
     _check_scan(frames, positions, system, saturation)
@@ -614,16 +622,14 @@ def calibrate(
         if dark.shape != frames.shape[1:]:
             raise CalibrationError(f"dark frame is {dark.shape[0]}×{dark.shape[1]} px, the scan's "
                                    f"frames {frames.shape[1]}×{frames.shape[2]}")  # fmt: skip
-        frames = frames - dark
-    else:
-        frames = frames - np.median(frames, axis=(1, 2), keepdims=True)
     # From here on, one mean frame per distinct position (whatever the scan's order); in
     # the PSF fit and the brightness a position of c frames weighs c, as its frames would.
-    positions, frames, counts, which = _average_repeats(frames, positions)
+    positions, frames, counts, which = _average_repeats(frames, positions, dark)
     labels = [_frame_label(np.flatnonzero(which == m)) for m in range(len(positions))]
     # Robust noise of one frame's background: spots cover a small fraction of every frame.
-    sigma = float(np.median(median_abs_deviation(frames, axis=(1, 2), scale="normal")
-                            * np.sqrt(counts)))  # fmt: skip
+    spread = np.array([median_abs_deviation(frame, axis=None, scale="normal")
+                       for frame in frames])
+    sigma = float(np.median(spread * np.sqrt(counts)))
     sigma = max(sigma, 1e-12)
     # A source a fraction f off its nearest whole pixel q: its frame moved back by -f is
     # the frame of a source on q, as the operator's PSFs are, with the PSF shapes of p.
@@ -722,9 +728,12 @@ def _frame_label(frames: np.ndarray) -> str:
 
 
 def _registered(frames: np.ndarray, fraction: np.ndarray) -> np.ndarray:
-    """Each frame moved by ``-fraction`` ``(N, 2)``: as if its source sat on a whole pixel."""
-    return np.stack([frame if not move.any() else _subpixel_shift(frame, -move)
-                     for frame, move in zip(frames, fraction, strict=True)])  # fmt: skip
+    """Each frame moved by ``-fraction`` ``(N, 2)``, in place: as if its source sat on a
+    whole pixel."""
+    for frame, move in zip(frames, fraction, strict=True):
+        if move.any():
+            frame[...] = _subpixel_shift(frame, -move)
+    return frames
 
 
 def _silent(stage: str, fraction: float) -> None:
