@@ -73,7 +73,7 @@ def test_dataset_objects_choose_the_phantom_kind(tiny_system, tmp_path, capsys):
 def test_train_from_initial_weights(tiny_system, tiny_model_config, tmp_path, capsys):
     from safetensors.torch import load_file
 
-    from svcode_core.methods.model_file import save_model
+    from svcode_core.methods.model_file import record_extra, save_model
     from svcode_core.network import SVCoDe
     from svcode_core.training import TrainConfig, Trainer
 
@@ -84,6 +84,7 @@ def test_train_from_initial_weights(tiny_system, tiny_model_config, tmp_path, ca
     config = tiny_model_config
     torch.manual_seed(3)
     weights = save_model(tmp_path / "start.safetensors", SVCoDe(config), tiny_system)
+    record_extra(weights, overlap_check={"overlap": 8})  # as bench/tile_overlap.py --record
     trainer = Trainer(TrainingData(data), tmp_path / "run", config, TrainConfig(epochs=1),
                       init_weights=weights, progress=False)
     stored = load_file(str(weights))
@@ -98,6 +99,11 @@ def test_train_from_initial_weights(tiny_system, tiny_model_config, tmp_path, ca
     assert main(args) == 0
     tuned, _ = load_model(tmp_path / "tuned" / "best.safetensors", tiny_system)
     assert tuned.model_config == config
+    # the measured tile overlap travels with the weights, marked as inherited
+    inherited = {"overlap": 8, "inherited_from": "start.safetensors"}
+    assert tuned.overlap_check == inherited
+    checkpoint, _ = load_model(tmp_path / "tuned" / "checkpoints" / "epoch-0001.safetensors")
+    assert checkpoint.overlap_check == inherited
     # fine-tuning that adds the lens context starts from the same function
     wide = Trainer(TrainingData(data), tmp_path / "wide", config.replace(lens_context=True),
                    TrainConfig(epochs=1), init_weights=weights, progress=False).model.eval()

@@ -51,7 +51,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         "configuration (default: mini; the baselines have mini only)")
     parser.add_argument("--init", metavar="WEIGHTS",
                         help="start from the weights of a model file, or 'pretrained' for the "
-                        "bundled model (fine-tuning); the network configuration is the file's")
+                        "bundled model (fine-tuning); the network configuration and the "
+                        "measured tile overlap are the file's")
     parser.add_argument("--lens-context", type=int, nargs="?", const=1, default=0,
                         metavar="REACH",
                         help="SV-CoDe: the demixing stage also sees each lens's crop moved by "

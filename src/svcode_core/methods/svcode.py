@@ -202,9 +202,10 @@ def plan_tiles(
 def tile_overlap(model: torch.nn.Module) -> int:
     """Sub-view pixels by which planned tiles overlap: the overlap measured for the model
     (``overlap_check`` in its file's ``extra`` metadata, written by ``bench/tile_overlap.py
-    --record``: the smallest that loses at most :data:`AUTO_TOLERANCE_DB` of PSNR on the
-    held-out scenes against the receptive radius), else the receptive radius, where tiled
-    and whole outputs agree but for the channel attention.
+    --record`` and kept by a fine-tuning from that file: the smallest that loses at most
+    :data:`AUTO_TOLERANCE_DB` of PSNR on the held-out scenes against the receptive radius),
+    else the receptive radius, where tiled and whole outputs agree but for the channel
+    attention.
 
     Examples
     --------

@@ -160,7 +160,8 @@ class Trainer:
     init_weights : str or Path, optional
         A model file to start from instead of a random initialisation (fine-tuning); its
         architecture and network configuration must be ``model_config``'s. A resumed run
-        continues from its checkpoint instead.
+        continues from its checkpoint instead. The file's measured tile overlap
+        (``overlap_check``) is carried into every file the run writes, marked as inherited.
 
     Examples
     --------
@@ -201,6 +202,8 @@ class Trainer:
             sampling["patch"] = config.patch_size
         torch.manual_seed(derive_seed(config.seed, 4))
         self.model = self.task.build(self.system)
+        #: metadata carried from the initial weights' file into every file written
+        self.inherited: dict[str, Any] = {}
         if init_weights is not None:
             self._load_initial_weights(Path(init_weights))
         self.model.to(self.device)
@@ -453,7 +456,8 @@ class Trainer:
         return {"val_recon_psnr_bf16": self.validate(bf16=True)["val_recon_psnr"]}
 
     def _save_best(self) -> None:
-        extra = {**self._metadata(), "epoch": self.best["epoch"], "metrics": self.best}
+        extra = {**self._metadata(), **self.inherited, "epoch": self.best["epoch"],
+                 "metrics": self.best}
         if "val_recon_psnr_bf16" in self.best:
             loss = self.best["val_recon_psnr"] - self.best["val_recon_psnr_bf16"]
             extra["precision_check"] = {"bf16": {
@@ -482,7 +486,7 @@ class Trainer:
             "train_config": json.dumps(self.config.to_dict()),
         }
         _atomic_write(weights, lambda tmp: save_model(tmp, self.model, self.system,
-                                                      {"epoch": self.epoch}))
+                                                      {"epoch": self.epoch, **self.inherited}))
         _atomic_write(state_path, lambda tmp: torch.save(state, tmp))
         previous = self._latest(strict=False)  # a damaged one is replaced here
         write_text_atomic(folder / LATEST, json.dumps(
@@ -509,6 +513,9 @@ class Trainer:
         except RuntimeError as error:  # frame-sized filters of another system's size
             raise ValueError(f"{path}: its weights do not fit this dataset's system: "
                              f"{str(error).splitlines()[-1].strip()}") from error
+        check = getattr(source, "overlap_check", {})
+        if check:  # fine-tuning keeps the receptive field: its measured overlap still plans tiles
+            self.inherited["overlap_check"] = {**check, "inherited_from": path.name}
 
     def _latest(self, strict: bool = True) -> dict[str, Any] | None:
         """``latest.json`` (``None`` if there is none); a damaged one raises
