@@ -208,6 +208,20 @@ def test_repeated_frames_are_averaged(scan):
         calibrate(empty, np.concatenate([positions, positions]), system, dark=dark)
 
 
+def test_the_command_maps_the_scan_and_reads_a_compressed_one(scan, tmp_path):
+    import tifffile
+
+    from svcode_core.cli.calibrate import _scan
+
+    system, _, _, frames, _, _ = scan
+    write_tiff(tmp_path / "scan.tif", frames, system, kind="scan")
+    tifffile.imwrite(tmp_path / "packed.tif", frames, compression="zlib")
+    mapped, read = _scan(tmp_path / "scan.tif"), _scan(tmp_path / "packed.tif")
+    assert isinstance(mapped, np.memmap) and not isinstance(read, np.memmap)
+    np.testing.assert_array_equal(mapped, frames)
+    np.testing.assert_array_equal(read, frames)
+
+
 def test_the_working_memory_does_not_grow_with_the_frames_of_a_position(scan):
     # A paper-scale scan is gigabytes: the calibration keeps one float32 mean frame per
     # position and reads the scan's frames one at a time (float64 copies of the whole stack

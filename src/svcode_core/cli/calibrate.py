@@ -5,8 +5,12 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from . import SUMMARIES, add_system_arguments, chosen_system
+
+if TYPE_CHECKING:
+    import numpy as np
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -48,6 +52,21 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
+def _scan(path: Path) -> np.ndarray:
+    """The scan's frames ``(N, H, W)``, memory-mapped where the TIFF allows: a paper-scale
+    scan of 4 frames per position is 15 GB, and the calibration reads it a frame at a time."""
+    import numpy as np
+    import tifffile
+
+    from ..io import read_tiff
+
+    try:
+        frames = tifffile.memmap(path, mode="r")
+    except (OSError, ValueError, tifffile.TiffFileError):  # compressed, scattered, unreadable
+        frames = np.asarray(read_tiff(path)[0])  # (whose errors name the problem)
+    return frames[None] if frames.ndim == 2 else frames
+
+
 def run(args: argparse.Namespace) -> int:
     """Calibrate and write the files; print a summary."""
     # scipy.stats and scikit-image's feature module: only when calibrating
@@ -60,10 +79,7 @@ def run(args: argparse.Namespace) -> int:
     nominal = chosen_system(args)
     if nominal is None:
         raise ValueError("give the nominal system: --system NAME or FILE.json")
-    frames, _, _ = read_tiff(args.scan)
-    frames = np.asarray(frames)
-    if frames.ndim == 2:
-        frames = frames[None]
+    frames = _scan(args.scan)
     pixel_size = nominal.object_pixel_um if args.pixel_size is None else args.pixel_size
     positions = read_positions(args.positions, pixel_size, size=nominal.sub_view_size,
                                frames=len(frames))  # fmt: skip
