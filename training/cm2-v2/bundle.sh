@@ -6,8 +6,9 @@
 #   2. the smallest tile overlap within 0.05 dB of the receptive radius's (tile_overlap.py);
 #   3. bf16's loss against float32 on the paper-scale benchmark (precision.py), which
 #      --precision auto reads;
-#   4. the held-out benchmark (svcode bench --system cm2-v2) and the whole frames.
-# About 1.5 hours on one thread. The model card (src/svcode_core/weights/cm2-v2.md) quotes
+#   4. the held-out benchmark (svcode bench --system cm2-v2: matched and realistic; the
+#      four other regimes in bench/other-regimes) and the whole frames.
+# About 2 hours on one thread. The model card (src/svcode_core/weights/cm2-v2.md) quotes
 # the reports written to training/cm2-v2/bench/.
 # Usage (from the repository root): bash training/cm2-v2/bundle.sh [MODEL]
 set -euo pipefail
@@ -25,4 +26,6 @@ python bench/tile_overlap.py --weights "$work" --regimes matched --scenes cells 
 python bench/precision.py --weights "$work" --system cm2-v2 --record --out "$here/bench/precision"
 cp "$work" "$out"
 svcode bench --system cm2-v2 --out "$here/bench"
+svcode bench --system cm2-v2 --regimes calibration model background low-light \
+  --out "$here/bench/other-regimes"
 python "$here/whole_frames.py" "$out" admm --out runs/whole-frames
