@@ -30,6 +30,7 @@ from .outputs import temporary_sibling
 __all__ = [
     "add_tiff_metadata",
     "atomic_path",
+    "mapped_tiff",
     "read_tiff",
     "resolution_tags",
     "system_beside",
@@ -202,6 +203,15 @@ def read_tiff(path: str | Path) -> tuple[np.ndarray, SystemConfig | None, dict[s
     if size is not None:
         meta["pixel_size_um"] = size
     return array, system, meta
+
+
+def mapped_tiff(path: str | Path) -> np.ndarray | None:
+    """A TIFF's image data memory-mapped (read-only), or ``None`` where it cannot be:
+    compressed or scattered data, or no readable TIFF (:func:`read_tiff` then says why)."""
+    try:
+        return tifffile.memmap(path, mode="r")
+    except (OSError, ValueError, tifffile.TiffFileError):
+        return None
 
 
 #: micrometres per unit of the length units a TIFF may give its pixel size in

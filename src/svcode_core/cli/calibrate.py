@@ -56,14 +56,12 @@ def _scan(path: Path) -> np.ndarray:
     """The scan's frames ``(N, H, W)``, memory-mapped where the TIFF allows: a paper-scale
     scan of 4 frames per position is 15 GB, and the calibration reads it a frame at a time."""
     import numpy as np
-    import tifffile
 
-    from ..io import read_tiff
+    from ..io import mapped_tiff, read_tiff
 
-    try:
-        frames = tifffile.memmap(path, mode="r")
-    except (OSError, ValueError, tifffile.TiffFileError):  # compressed, scattered, unreadable
-        frames = np.asarray(read_tiff(path)[0])  # (whose errors name the problem)
+    frames = mapped_tiff(path)
+    if frames is None:  # compressed, scattered or unreadable (read_tiff names the problem)
+        frames = np.asarray(read_tiff(path)[0])
     return frames[None] if frames.ndim == 2 else frames
 
 

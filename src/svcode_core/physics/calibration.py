@@ -239,11 +239,15 @@ def _check_scan(frames: np.ndarray, positions: np.ndarray, system: SystemConfig,
         n = int(outside[0])
         raise CalibrationError(f"frame {n}: position ({positions[n, 0]:g}, {positions[n, 1]:g}) "
                                f"lies outside the {size}×{size} object grid")
-    # one frame at a time: a paper-scale scan is gigabytes
-    bad = [n for n, frame in enumerate(frames) if not np.isfinite(frame).all()]
-    if bad:
-        raise CalibrationError(f"frame {bad[0]}: contains NaN or Inf values")
-    saturated = np.flatnonzero([(frame >= saturation).any() for frame in frames])
+    # one pass, a frame at a time: a paper-scale scan is gigabytes
+    finite, saturated = [], []
+    for frame in frames:
+        finite.append(np.isfinite(frame).all())
+        saturated.append((frame >= saturation).any())
+    bad = np.flatnonzero(~np.array(finite, dtype=bool))
+    if bad.size:
+        raise CalibrationError(f"frame {int(bad[0])}: contains NaN or Inf values")
+    saturated = np.flatnonzero(saturated)
     if saturated.size:
         n = int(saturated[0])
         r, c = np.unravel_index(int(np.argmax(frames[n])), frames.shape[1:])

@@ -55,6 +55,7 @@ from ..config import N_LENSES, SystemConfig
 from ..io import (
     METADATA_KEY,
     add_tiff_metadata,
+    mapped_tiff,
     resolution_tags,
     tiff_metadata,
     write_json_atomic,
@@ -109,13 +110,7 @@ class FrameReader:
         self.is_stack = len(self.shape) == 3
         self.system, self.metadata = tiff_metadata(self._tif)
         self._pages = list(series.pages) if self.is_stack else []
-        self._memmap = self._try_memmap()
-
-    def _try_memmap(self) -> np.ndarray | None:
-        try:
-            return tifffile.memmap(self.path, mode="r")
-        except ValueError:  # compressed or scattered data
-            return None
+        self._memmap = mapped_tiff(self.path)
 
     def __len__(self) -> int:
         return self.shape[0] if self.is_stack else 1
