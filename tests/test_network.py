@@ -158,8 +158,12 @@ def test_bad_inputs_raise(two_level_model_config):
     model = _model(two_level_model_config)
     with pytest.raises(ValueError, match="views must have shape"):
         model(torch.rand(1, 8, 16, 16), [[0, 0]], 48)
-    with pytest.raises(ValueError, match="NaN"):
-        model(torch.full((1, 9, 16, 16), float("nan")), [[0, 0]], 48)
+    for bad in (float("nan"), float("inf"), -float("inf")):  # one value among finite ones
+        for dtype in (torch.float32, torch.bfloat16):
+            views = torch.rand(1, 9, 16, 16)
+            views[0, 4, 7, 3] = bad
+            with pytest.raises(ValueError, match="NaN or Inf"):
+                model(views.to(dtype), [[0, 0]], 48)
     with pytest.raises(ValueError, match="origins"):
         model(torch.rand(1, 9, 16, 16), [[0.5, 0.0]], 48)
     with pytest.raises(ValueError, match="origins"):
