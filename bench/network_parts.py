@@ -47,7 +47,9 @@ def part_of(op: str) -> str:
     """The part an aten operator's time is counted in."""
     if "conv" in op:
         return "convolution"
-    if any(k in op for k in ("::mm", "::bmm", "::addmm", "::matmul", "::baddbmm")):
+    if "::baddbmm" in op:  # the view block's 1×1 convolutions (fast.pointwise)
+        return "convolution"
+    if any(k in op for k in ("::mm", "::bmm", "::addmm", "::matmul")):
         return "matrix product"
     if "layer_norm" in op:
         return "layer norm"
@@ -69,6 +71,20 @@ def gemm_peak(dtype: torch.dtype, n: int = 2048) -> float:
     torch.mm(a, b)
     best = min(_timed(lambda: torch.mm(a, b)) for _ in range(3))
     return 2 * n**3 / best / 1e9
+
+
+def processor() -> str:
+    """The processor's model name and its bf16 units, from ``/proc/cpuinfo`` (Linux)."""
+    try:
+        info = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return platform.processor() or platform.machine()
+    name = next((line.split(":", 1)[1].strip() for line in info.splitlines()
+                 if line.startswith("model name")), platform.machine())
+    flags = set(info.split())
+    units = [unit for flag, unit in (("avx512_bf16", "AVX-512 bf16"), ("amx_bf16", "AMX"))
+             if flag in flags]
+    return f"{name} ({', '.join(units) or 'no bf16 units'})"
 
 
 def _timed(call) -> float:
@@ -154,7 +170,7 @@ def main() -> None:
                    **profile_parts(make(precision))}
             rows.append(row)
             print(workload, precision, f"{row['wall_s']:.3f} s", flush=True)
-    report = {"processor": platform.processor() or platform.machine(),
+    report = {"processor": processor(),
               "capability": torch.backends.cpu.get_cpu_capability(),
               "gemm_peak_gflops": peak, "rows": rows}
     RESULTS.mkdir(exist_ok=True)
@@ -174,8 +190,8 @@ def markdown(report: dict) -> str:
         "each part's own operator time in one profiled run (the wall time is the median of "
         "three unprofiled runs); GFLOP/s of a part is its FLOPs over its time, and *of "
         "peak* compares it with a 2048² matrix product on the same thread "
-        f"(fp32 {peak['fp32']:.0f}, bf16 {peak['bf16']:.0f} GFLOP/s; CPU capability "
-        f"{report['capability']}).",
+        f"(fp32 {peak['fp32']:.0f}, bf16 {peak['bf16']:.0f} GFLOP/s; {report['processor']}, "
+        f"torch's CPU capability {report['capability']}).",
         "",
         "| workload | precision | wall s | " + " | ".join(f"{p} s" for p in PARTS)
         + " | conv GFLOP/s | conv of peak | MLP GFLOP/s |",
