@@ -21,7 +21,6 @@ Run: ``python bench/network_parts.py`` (the machine quiet: the times are absolut
 from __future__ import annotations
 
 import json
-import platform
 import time
 from pathlib import Path
 
@@ -30,6 +29,7 @@ import torch
 from torch.profiler import ProfilerActivity, profile
 from torch.utils.flop_counter import FlopCounterMode
 
+from svcode_bench import processor
 from svcode_core import SystemConfig
 from svcode_core.config import N_LENSES
 from svcode_core.methods.build import build_reconstructor
@@ -71,20 +71,6 @@ def gemm_peak(dtype: torch.dtype, n: int = 2048) -> float:
     torch.mm(a, b)
     best = min(_timed(lambda: torch.mm(a, b)) for _ in range(3))
     return 2 * n**3 / best / 1e9
-
-
-def processor() -> str:
-    """The processor's model name and its bf16 units, from ``/proc/cpuinfo`` (Linux)."""
-    try:
-        info = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return platform.processor() or platform.machine()
-    name = next((line.split(":", 1)[1].strip() for line in info.splitlines()
-                 if line.startswith("model name")), platform.machine())
-    flags = set(info.split())
-    units = [unit for flag, unit in (("avx512_bf16", "AVX-512 bf16"), ("amx_bf16", "AMX"))
-             if flag in flags]
-    return f"{name} ({', '.join(units) or 'no bf16 units'})"
 
 
 def _timed(call) -> float:
@@ -170,7 +156,8 @@ def main() -> None:
                    **profile_parts(make(precision))}
             rows.append(row)
             print(workload, precision, f"{row['wall_s']:.3f} s", flush=True)
-    report = {"processor": processor(),
+    name, bf16 = processor()
+    report = {"processor": f"{name} ({', '.join(bf16) or 'no bf16 units'})",
               "capability": torch.backends.cpu.get_cpu_capability(),
               "gemm_peak_gflops": peak, "rows": rows}
     RESULTS.mkdir(exist_ok=True)

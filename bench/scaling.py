@@ -65,13 +65,14 @@ import argparse
 import csv
 import json
 import math
-import platform
 import resource
 import subprocess
 import sys
 import time
 from pathlib import Path
 from typing import Any
+
+from svcode_bench import processor
 
 RESULTS = Path(__file__).parent / "results"
 REPO = Path(__file__).resolve().parent.parent
@@ -358,15 +359,7 @@ def available_gib() -> float:
 
 def cpu_description() -> str:
     """The processor's model name and whether it has bfloat16 units."""
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return platform.processor() or "unknown"
-    name = next((line.split(":", 1)[1].strip() for line in text.splitlines()
-                 if line.startswith("model name")), "unknown")
-    flags = next((line.split(":", 1)[1].split() for line in text.splitlines()
-                  if line.startswith("flags")), [])
-    bf16 = [f for f in ("avx512_bf16", "amx_bf16") if f in flags]
+    name, bf16 = processor()
     units = f"bfloat16 units ({', '.join(bf16)}), unused: all runs are float32" if bf16 \
         else "no bfloat16 units"
     return f"{name}, {units}"

@@ -16,6 +16,9 @@ from their own folder; ``svcode bench`` and the tests add the checkout's ``bench
 ``sys.path``.
 """
 
+import platform
+from pathlib import Path
+
 #: the benchmark's regimes: name → the departures (:mod:`svcode_core.physics.departures`)
 #: of the instrument its test frames come from; here, where ``svcode bench --help`` reads
 #: them without importing torch
@@ -27,3 +30,17 @@ REGIMES = {
     "low-light": "low-light",
     "realistic": "realistic",
 }
+
+
+def processor() -> tuple[str, list[str]]:
+    """The processor's model name and its bfloat16 flags (``avx512_bf16``, ``amx_bf16``),
+    from ``/proc/cpuinfo``; where there is none, the platform's name and no flags."""
+    try:
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+    except OSError:
+        return platform.processor() or platform.machine(), []
+    name = next((line.split(":", 1)[1].strip() for line in lines
+                 if line.startswith("model name")), platform.machine())
+    flags = next((line.split(":", 1)[1].split() for line in lines
+                  if line.startswith("flags")), [])
+    return name, [f for f in ("avx512_bf16", "amx_bf16") if f in flags]
