@@ -139,11 +139,42 @@ def test_normalised_samples_scale_inputs_and_targets_alike(departed_data):
                           normalise_exposure=True)
     first, second = plain[0], normal[0]
     frame, _ = plain.locate(0)
-    sensor = crop_to_sensor(assemble_frame(torch.from_numpy(np.array(
-        departed_data.views[frame])), departed_data.system), departed_data.system)
-    gain = REFERENCE_LEVEL / exposure_level(sensor.numpy())
+    gain = normal.gain(frame)
     for key in ("views", "demixed", "object"):
         torch.testing.assert_close(second[key], first[key] * gain)
+    # the level of a noisy reading, as a reconstructor measures it: near the noiseless
+    # frame's for a scene well above the noise (the noise adds a few per cent to its peak)
+    sensor = crop_to_sensor(assemble_frame(torch.from_numpy(np.array(
+        departed_data.views[frame])), departed_data.system), departed_data.system)
+    assert gain == pytest.approx(REFERENCE_LEVEL / exposure_level(sensor.numpy()), rel=0.1)
+
+
+def test_an_empty_scene_gets_the_gain_inference_would_give(departed_data, tmp_path):
+    """A scene at 1e-5 of full scale is read as noise: its training gain is the one a
+    reconstructor computes from such readings, not the noiseless frame's (over 100× larger
+    on this small sensor, thousands of times on a real one)."""
+    import shutil
+
+    from svcode_core.methods.exposure import exposure_gain
+    from svcode_core.physics.geometry import assemble_frame, crop_to_sensor
+    from svcode_core.training.dataset import TrainingData
+    from svcode_core.training.sampler import PatchDataset
+
+    folder = tmp_path / "data"
+    shutil.copytree(departed_data.path, folder)
+    frame = departed_data.train_frames[0]
+    views = np.load(folder / "views.npy", mmap_mode="r+")
+    views[frame] *= 1e-5
+    views.flush()
+    del views
+    data = TrainingData(folder)
+    sensor = crop_to_sensor(assemble_frame(data.read(data.views[frame]), data.system),
+                            data.system)  # fmt: skip
+    readings = [exposure_gain(data.frame_sensor(frame).read(
+        sensor, torch.Generator().manual_seed(seed)).numpy()) for seed in range(8)]
+    gain = PatchDataset(data, [frame], normalise_exposure=True).gain(frame)
+    assert min(readings) / 1.5 <= gain <= 1.5 * max(readings)
+    assert gain < 1e-2 * exposure_gain(sensor.numpy())  # the noiseless measurement
 
 
 def test_a_photon_range_draws_dimmer_samples(departed_data):

@@ -87,8 +87,10 @@ class _NoisySamples(torch.utils.data.Dataset):
     ``photon_range`` ``(low, high)``: every access draws a factor on the frame's photon
     level log-uniformly from it (dimmer samples, the same camera). ``normalise_exposure``:
     the inputs and targets of a frame are multiplied by the gain that brings the frame to
-    :data:`~svcode_core.methods.exposure.REFERENCE_LEVEL`, as the reconstructors do (its
-    level measured on the noiseless frame, once).
+    :data:`~svcode_core.methods.exposure.REFERENCE_LEVEL`, as the reconstructors do: its
+    level is measured, once, on one noisy reading of the whole frame, as a reconstructor
+    measures the frames it gets (on the noiseless frame an empty scene's level is its
+    fixed-pattern residue, and its gain thousands of times what inference applies).
     """
 
     def __init__(
@@ -134,6 +136,9 @@ class _NoisySamples(torch.utils.data.Dataset):
         if frame not in self._gains:
             views = self.data.read(self.data.views[frame])
             sensor = crop_to_sensor(assemble_frame(views, self.system), self.system)
+            if self.noise:
+                generator = torch.Generator().manual_seed(derive_seed(self.seed, 4, frame))
+                sensor = self.data.frame_sensor(frame).read(sensor, generator)
             self._gains[frame] = exposure_gain(sensor.numpy())
         return self._gains[frame]
 
