@@ -151,8 +151,8 @@ def test_normalised_samples_scale_inputs_and_targets_alike(departed_data):
 
 def test_an_empty_scene_gets_the_gain_inference_would_give(departed_data, tmp_path):
     """A scene at 1e-5 of full scale is read as noise: its training gain is the one a
-    reconstructor computes from such readings, not the noiseless frame's (over 100× larger
-    on this small sensor, thousands of times on a real one)."""
+    reconstructor computes from such readings, not the noiseless frame's (over 100× larger,
+    as for the empty scene of the cm2-mini training data)."""
     import shutil
 
     from svcode_core.methods.exposure import exposure_gain

@@ -90,7 +90,7 @@ class _NoisySamples(torch.utils.data.Dataset):
     :data:`~svcode_core.methods.exposure.REFERENCE_LEVEL`, as the reconstructors do: its
     level is measured, once, on one noisy reading of the whole frame, as a reconstructor
     measures the frames it gets (on the noiseless frame an empty scene's level is its
-    fixed-pattern residue, and its gain thousands of times what inference applies).
+    fixed-pattern residue, and its gain a hundred times what inference applies).
     """
 
     def __init__(
