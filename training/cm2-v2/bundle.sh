@@ -15,9 +15,9 @@
 # (src/svcode_core/weights/cm2-v2.md) quotes the reports written to training/cm2-v2/bench/.
 # Usage (from the repository root): bash training/cm2-v2/bundle.sh [--keep-baselines] [MODEL]
 set -euo pipefail
-bench_rows=() baseline=admm
+bench_rows=() frame_rows=(admm)
 if [[ "${1:-}" == --keep-baselines ]]; then
-  bench_rows=(--methods svcode --merge) baseline=""
+  bench_rows=(--methods svcode --merge) frame_rows=()
   shift
 fi
 model="${1:-training/cm2-v2/run/best.safetensors}"
@@ -36,4 +36,4 @@ cp "$work" "$out"
 svcode bench --system cm2-v2 "${bench_rows[@]}" --out "$here/bench"
 svcode bench --system cm2-v2 --regimes calibration model background low-light \
   "${bench_rows[@]}" --out "$here/bench/other-regimes"
-python "$here/whole_frames.py" "$out" $baseline --out runs/whole-frames
+python "$here/whole_frames.py" "$out" "${frame_rows[@]}" --out runs/whole-frames
