@@ -70,6 +70,31 @@ def test_merge_keys_rows_by_regime_and_method():
     assert [(r["regime"], r["psnr"]) for r in merged["rows"]] == [("matched", 1.0), ("model", 3.0)]
 
 
+def test_merge_reads_the_equal_time_row_out_again_when_its_reference_runs_anew():
+    """Rerunning SV-CoDe alone (``--methods svcode --merge``) must not leave LSV-ADMM at
+    the old model's seconds: the row is read out of its trace at the new ones, and left
+    out, with a note, when the earlier report kept no trace."""
+    steps = [(float(n), dict.fromkeys(regimes.METRICS, 20.0 + n)) for n in (1, 2, 3, 4)]
+    admm = Row("LSV-ADMM", "K=3, 10 it", {"rank": 3, "tv_weight": 1e-3}, setup_seconds=5.0)
+    scores = dict.fromkeys(regimes.METRICS, 30.0)
+    old = Row("SV-CoDe", "planned", {}, per_scene={"a": {**scores, "seconds": 1.5}})
+    base = {"system": "tiny", "scenes": ["a"], "quick": False, "simulator_rank": 3,
+            "total_seconds": 1.0, "note": None, "regimes": ["matched"]}  # fmt: skip
+    equal = regimes.equal_time_row(admm, {"a": steps}, old).summary()
+    earlier = {**base, "rows": [old.summary(), json.loads(json.dumps(equal))]}
+    new = Row("SV-CoDe", "planned", {}, per_scene={"a": {**scores, "seconds": 3.2}})
+    merged = merge_reports(earlier, {**base, "rows": [new.summary()]})
+    again = [r for r in merged["rows"] if r["method"] == "LSV-ADMM"]
+    assert equal["psnr"] == 21.0 and len(again) == 1
+    assert again[0]["psnr"] == 23.0 and again[0]["per_scene"]["a"]["iterations"] == 3
+    assert again[0]["knob"] == "K=3, at SV-CoDe's time (3 it)"
+    assert again[0]["setup_seconds"] == 5.0 and merged["note"] is None
+    del earlier["rows"][1]["settings"]["trace"]
+    merged = merge_reports(earlier, {**base, "rows": [new.summary()]})
+    assert [r["method"] for r in merged["rows"]] == ["SV-CoDe"]
+    assert "left out" in merged["note"]
+
+
 def test_lsv_admm_at_sv_codes_time_is_read_from_its_own_trace(tiny_system):
     """The equal-time row takes, frame by frame, the last iteration done within the
     reference's seconds: its scores are the traced ones, which are the rows' own at the

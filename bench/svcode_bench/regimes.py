@@ -304,10 +304,13 @@ def equal_time_row(admm: Row, trace: dict[str, list[tuple[float, dict[str, float
     ``reference``'s seconds on that frame (at least one; at most the traced ones).
 
     ``admm`` is one of the traced run's rows (:func:`admm_rows` with ``trace``), whose
-    set-up and memory the new row shares.
+    set-up and memory the new row shares. The row keeps the reference's method and the
+    trace in its settings, so that :func:`merge_reports` reads it out again when the
+    reference alone is run anew.
     """
     row = Row(admm.method, f"K={admm.settings['rank']}, at {reference.method}'s time",
-              {"rank": admm.settings["rank"], "tv_weight": admm.settings["tv_weight"]},
+              {"rank": admm.settings["rank"], "tv_weight": admm.settings["tv_weight"],
+               "reference": reference.method, "trace": trace},
               setup_seconds=admm.setup_seconds, peak_memory_mib=admm.peak_memory_mib)  # fmt: skip
     for name, steps in trace.items():
         budget = reference.per_scene[name]["seconds"]
@@ -750,6 +753,11 @@ def pareto_front(points: list[tuple[float, float]]) -> list[tuple[float, float]]
 def merge_reports(earlier: dict[str, Any], report: dict[str, Any]) -> dict[str, Any]:
     """``report`` with the rows of ``earlier`` whose (regime, method) it did not run.
 
+    An earlier row measured at another method's time (:func:`equal_time_row`) whose
+    reference ``report`` ran anew is read out again from its trace at the new seconds, or
+    left out, with a note, when the earlier report kept no trace: an old time budget
+    never stands beside a new model.
+
     Raises
     ------
     ValueError
@@ -764,8 +772,21 @@ def merge_reports(earlier: dict[str, Any], report: dict[str, Any]) -> dict[str, 
         return row.get("regime", "matched"), row["method"]
 
     ran = {key(row) for row in report["rows"]}
-    kept = [row for row in earlier["rows"] if key(row) not in ran]
-    notes = [n for n in (earlier.get("note"), report["note"]) if n]
+    references = {}
+    for row in report["rows"]:  # a method's first row in a regime is its reference
+        references.setdefault(key(row), row)
+    kept, notes = [], [n for n in (earlier.get("note"), report["note"]) if n]
+    for row in earlier["rows"]:
+        if key(row) in ran:
+            continue
+        regime, reference = row.get("regime", "matched"), row.get("settings", {}).get("reference")
+        if (regime, reference) in references:
+            if "trace" not in row["settings"]:
+                notes.append(f"{row['method']} {row['knob']} ({regime}) left out: "
+                             f"{reference} was run anew and the earlier report kept no trace")
+                continue
+            row = _read_out_again(row, references[regime, reference])
+        kept.append(row)
     return {
         **report,
         "total_seconds": earlier["total_seconds"] + report["total_seconds"],
@@ -775,6 +796,20 @@ def merge_reports(earlier: dict[str, Any], report: dict[str, Any]) -> dict[str, 
         "departures": {**earlier.get("departures", {}), **report.get("departures", {})},
         "rows": kept + report["rows"],
     }
+
+
+def _read_out_again(row: dict[str, Any], reference: dict[str, Any]) -> dict[str, Any]:
+    """The equal-time ``row`` of a report read out from its trace at ``reference``'s
+    seconds on each frame."""
+    settings = row["settings"]
+    kept = {"rank": settings["rank"], "tv_weight": settings["tv_weight"]}
+    admm = Row(row["method"], "", kept, setup_seconds=row["setup_seconds"],
+               peak_memory_mib=row["peak_memory_mib"])  # fmt: skip
+    trace = {name: [tuple(step) for step in steps] for name, steps in settings["trace"].items()}
+    reference_row = Row(reference["method"], "", {}, per_scene=reference["per_scene"])
+    again = equal_time_row(admm, trace, reference_row)
+    again.regime, again.footprint = row.get("regime", "matched"), row.get("footprint")
+    return again.summary()
 
 
 def write_report(report: dict[str, Any], out: Path, merge: bool = False) -> Path:

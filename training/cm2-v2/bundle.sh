@@ -10,8 +10,8 @@
 #      four other regimes in bench/other-regimes) and the whole frames.
 # About 3.5 hours on one thread, most of it LSV-ADMM's rows, which do not depend on the
 # model: --keep-baselines reruns only SV-CoDe's rows and keeps the other methods' from the
-# committed reports (about 1 hour; LSV-ADMM's row at SV-CoDe's time stays at the old
-# model's time, the same when the network's shape is). The model card
+# committed reports (about 1 hour); LSV-ADMM's row at SV-CoDe's time is read out again at
+# the new model's seconds from the trace the report keeps. The model card
 # (src/svcode_core/weights/cm2-v2.md) quotes the reports written to training/cm2-v2/bench/.
 # Usage (from the repository root): bash training/cm2-v2/bundle.sh [--keep-baselines] [MODEL]
 set -euo pipefail

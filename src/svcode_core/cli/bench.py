@@ -119,7 +119,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--merge", action="store_true",
                         help="keep the rows of other methods from an earlier report in "
                         "--out (same system and scenes); rows of the methods run now "
-                        "replace theirs")  # fmt: skip
+                        "replace theirs, and LSV-ADMM at SV-CoDe's time is read out again "
+                        "at SV-CoDe's new seconds")  # fmt: skip
     add_progress_argument(parser, "progress lines")
     parser.set_defaults(func=run)
 
