@@ -858,7 +858,10 @@ def test_compare_scores_only_against_the_truth_of_its_own_scene(
     assert widget._truth.value.name == "cells truth"
 
 
-def test_costly_settings_ask_before_running(qtbot, make_napari_viewer, warnings):
+def test_costly_settings_ask_before_running(qtbot, make_napari_viewer, warnings, monkeypatch):
+    import napari_svcode.widgets._methods as methods
+
+    monkeypatch.setattr(methods, "LONG_RUN_SECONDS", 60.0)  # 7-px tiles: a few minutes
     viewer = make_napari_viewer()
     viewer.open_sample("napari-svcode", "cells")
     widget = _dock(viewer, ReconstructWidget)

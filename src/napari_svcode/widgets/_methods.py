@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import psutil
+import torch
 from magicgui.widgets import (
     CheckBox,
     ComboBox,
@@ -247,9 +248,10 @@ class MethodPanel(Container):
         memory = frames * size * size * 4 * (10 if views else 1)
         per_iteration = iteration_seconds(size, device)
         if entry.family == SVCODE:
+            model = self._model(system)
             try:
                 plan = tile_plan(
-                    self._model(system),
+                    model,
                     system,
                     options["precision"],
                     options.get("tile_size"),
@@ -261,7 +263,8 @@ class MethodPanel(Container):
                 return Cost(0.0, memory, "")
             per_frame = len(plan.grid)
             tiles = per_frame * frames
-            seconds = tile_seconds(tiles, plan.grid.patch, device)
+            work = model.working_bytes_per_pixel(torch.float32)
+            seconds = tile_seconds(tiles, plan.grid.patch, work, device)
             memory += entry.defaults["mask_cache_bytes"] + plan.working_bytes
             detail = f"{tiles:,} tile{'s' * (tiles > 1)}" if frames == 1 else (
                 f"{tiles:,} tiles: {per_frame:,} a frame × {frames} frames")  # fmt: skip
