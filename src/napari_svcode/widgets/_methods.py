@@ -263,7 +263,7 @@ class MethodPanel(Container):
                 return Cost(0.0, memory, "")
             per_frame = len(plan.grid)
             tiles = per_frame * frames
-            work = model.working_bytes_per_pixel(torch.float32)
+            work = None if model is None else model.working_bytes_per_pixel(torch.float32)
             seconds = tile_seconds(tiles, plan.grid.patch, work, device)
             memory += entry.defaults["mask_cache_bytes"] + plan.working_bytes
             detail = f"{tiles:,} tile{'s' * (tiles > 1)}" if frames == 1 else (

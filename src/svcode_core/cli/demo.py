@@ -94,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"SV-CoDe: PSNR {quality['psnr']:.2f} dB (centre {quality['psnr_centre']:.2f}, "
           f"outer ring {quality['psnr_ring']:.2f}), SSIM {quality['ssim']:.3f}")
     print(f"{seconds:.2f} s per frame{'' if warm_up else ' with its set-up'} on "
-          f"{rec.device} ({result.tiles_run} tiles run, "
+          f"{rec.device} ({result.tiles_run} tile{'s' * (result.tiles_run != 1)} run, "
           f"{result.tiles_skipped} skipped)")
     print(f"wrote {picture} and {args.out}/{{measurement,views,demixed,object,"
           "reconstruction}.tif, system.json")
