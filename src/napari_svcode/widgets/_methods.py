@@ -16,7 +16,6 @@ from pathlib import Path
 from typing import Any
 
 import psutil
-import torch
 from magicgui.widgets import (
     CheckBox,
     ComboBox,
@@ -263,7 +262,7 @@ class MethodPanel(Container):
                 return Cost(0.0, memory, "")
             per_frame = len(plan.grid)
             tiles = per_frame * frames
-            work = None if model is None else model.working_bytes_per_pixel(torch.float32)
+            work = None if model is None else model.working_bytes_per_pixel()
             seconds = tile_seconds(tiles, plan.grid.patch, work, device)
             memory += entry.defaults["mask_cache_bytes"] + plan.working_bytes
             detail = f"{tiles:,} tile{'s' * (tiles > 1)}" if frames == 1 else (

@@ -37,7 +37,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     """Simulate, reconstruct, score, save the files and the picture."""
     import numpy as np
-    import torch
 
     from ..evaluation.figures import overview_figure
     from ..evaluation.metrics import image_quality
@@ -57,8 +56,8 @@ def run(args: argparse.Namespace) -> int:
         rec = Reconstructor.from_weights(args.weights, system, device=args.device)
     else:
         rec = Reconstructor.pretrained(system, device=args.device)
-    estimate = tile_seconds(len(rec.grid), rec.grid.patch,
-                            rec.model.working_bytes_per_pixel(torch.float32), str(rec.device))
+    estimate = tile_seconds(len(rec.grid), rec.grid.patch, rec.model.working_bytes_per_pixel(),
+                            str(rec.device))
     warm_up = estimate < WARM_UP_BELOW_SECONDS  # a long frame is timed with its set-up
     runs = "twice (a warm-up, then timed)" if warm_up else "once (timed with its set-up)"
     print(f"system {system.name}: sensor {system.sensor_shape}, sub-views "
