@@ -27,7 +27,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from probes import ADMM_AUTO, admm_auto, learned_methods, realistic_simulator, write_report
+from probes import admm_auto, learned_methods, realistic_simulator, write_report
 
 from svcode_bench.beads import BEAD_SIGMA, BeadScore, bead_phantom, score_beads
 from svcode_core.config import SystemConfig
@@ -46,7 +46,8 @@ def methods(system: SystemConfig, admm: bool, learned: list[Path], others: bool)
     if others:
         found["SV-CoDe (bundled)"] = _run(build_reconstructor("svcode", system))
         if admm:
-            found[ADMM_AUTO] = _run(admm_auto(system))
+            label, admm = admm_auto(system)
+            found[label] = _run(admm)
         found["Wiener"] = _run(build_reconstructor("wiener", system))
     return found | dict(learned_methods(system, learned))
 

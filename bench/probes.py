@@ -1,6 +1,6 @@
-"""What the probe scripts (``ghosts.py``, ``ring_gap.py``, ``precision.py``,
-``tile_overlap.py``) share: the reconstructors they compare, with their labels, and how
-they write a report."""
+"""What the probe scripts (``ghosts.py``, ``ring_gap.py``, ``exposure.py``,
+``resolution.py``, ``precision.py``, ``tile_overlap.py``) share: the reconstructors they
+compare, with their labels, and how they write a report."""
 
 from __future__ import annotations
 
@@ -13,7 +13,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from svcode_bench.regimes import ADMM_RANK, REGIMES, SCENES, model_label, plan_for
+from svcode_bench.regimes import (
+    ADMM_RANK,
+    REGIMES,
+    SCENES,
+    model_label,
+    plan_for,
+    scene_object,
+)
 from svcode_core.config import SystemConfig
 from svcode_core.methods.base import BaseReconstructor
 from svcode_core.methods.build import build_reconstructor
@@ -74,19 +81,31 @@ def admm_method(system: SystemConfig, iterations: int) -> tuple[str, Reconstruct
             lambda raw: admm.reconstruct(raw).reconstruction)
 
 
-#: LSV-ADMM as the regime probes run it: its defaults, every iteration run
-ADMM_AUTO = f"LSV-ADMM K={ADMM_RANK}, 50 it, λ auto"
+def admm_iterations(system: SystemConfig) -> int:
+    """LSV-ADMM's iterations in the probes: the benchmark plan's most (50; 10 at paper
+    scale, where each takes seconds a frame)."""
+    return max(plan_for(system).admm_checkpoints)
 
 
-def admm_auto(system: SystemConfig) -> BaseReconstructor:
-    """LSV-ADMM at ``K`` = 3, 50 iterations, λ from each frame, no early stop."""
-    return build_reconstructor("admm", system, rank=ADMM_RANK, iterations=50, tolerance=0.0,
-                               tv_weight="auto")
+def admm_auto(system: SystemConfig) -> tuple[str, BaseReconstructor]:
+    """LSV-ADMM as the probes run it, with its label: ``K`` = 3, :func:`admm_iterations`,
+    λ from each frame, no early stop."""
+    iterations = admm_iterations(system)
+    return (f"LSV-ADMM K={ADMM_RANK}, {iterations} it, λ auto",
+            build_reconstructor("admm", system, rank=ADMM_RANK, iterations=iterations,
+                                tolerance=0.0, tv_weight="auto"))
 
 
 def realistic_simulator(system: SystemConfig) -> Simulator:
     """The realistic regime's departed instrument (the methods are given ``system``)."""
     return Simulator(system, departures=Departures.named(REGIMES["realistic"], system))
+
+
+def add_system_argument(parser: argparse.ArgumentParser) -> None:
+    """``--system``: the preset measured (default ``cm2-mini``)."""
+    parser.add_argument("--system", default="cm2-mini",
+                        help="preset (default cm2-mini; cm2-v2 runs the paper-scale plan's "
+                        "scenes)")  # fmt: skip
 
 
 def add_check_arguments(parser: argparse.ArgumentParser, what: str, name: str) -> None:
@@ -116,10 +135,20 @@ def planned_scenes(args: argparse.Namespace, system: SystemConfig) -> tuple[tupl
     return tuple(args.regimes or plan.regimes), tuple(args.scenes or plan.scenes)
 
 
+def plan_truths(system: SystemConfig, names: tuple[str, ...] | None = None,
+                ) -> dict[str, tuple[int, np.ndarray]]:  # fmt: skip
+    """The benchmark's scenes ``names`` (default: its plan's for ``system``), each with its
+    index in :data:`~svcode_bench.regimes.SCENES` (the object's seed; the benchmark's noise
+    seed is 100 + index) and its truth."""
+    names = names or plan_for(system).scenes
+    return {name: (index, scene_object(kind, system.sub_view_size, index, params))
+            for index, (name, kind, params) in enumerate(SCENES) if name in names}
+
+
 def write_report(rows: list[dict], out: Path,
-                 write_markdown: Callable[[dict, Path], None]) -> None:
-    """``out``.json (the rows and the thread count) and ``out``.md from it."""
-    report = {"threads": torch.get_num_threads(), "rows": rows}
+                 write_markdown: Callable[[dict, Path], None], **fields: Any) -> None:
+    """``out``.json (the rows, the thread count and ``fields``) and ``out``.md from it."""
+    report = {"threads": torch.get_num_threads(), **fields, "rows": rows}
     out.with_suffix(".json").write_text(json.dumps(report, indent=1))
     write_markdown(report, out.with_suffix(".md"))
     print(f"wrote {out.with_suffix('.md')}")

@@ -7,13 +7,17 @@ import pytest
 from scipy.ndimage import gaussian_filter
 
 from svcode_bench.resolution import (
+    GROUP_GAP,
     PERIODS,
+    PERIODS_AIRY_RADIUS,
     POSITIONS,
     RAYLEIGH_DIP,
     bar_dip,
     bar_target,
     finest_resolved,
+    periods_for,
 )
+from svcode_core.config import SystemConfig
 
 
 def test_every_group_of_the_truth_is_resolved_at_every_period():
@@ -53,3 +57,15 @@ def test_a_flat_image_has_no_dip_and_an_empty_one_resolves_nothing():
 def test_a_target_that_does_not_fit_is_refused():
     with pytest.raises(ValueError, match="do not fit"):
         bar_target(48, 8.0)
+
+
+def test_the_paper_scale_target_scales_with_the_psf_and_fits_the_field():
+    """At cm2-v2 the Airy radius is 4× cm2-mini's: periods and spacing 4× the mini's, and
+    the coarsest target still fits the 2400-px field with every group resolved."""
+    system = SystemConfig.preset("cm2-v2")
+    scale = system.optics.airy_radius / PERIODS_AIRY_RADIUS
+    assert scale == 4.0
+    periods = periods_for(system.optics.airy_radius)
+    assert periods == tuple(4 * p for p in PERIODS)
+    image, groups = bar_target(system.sub_view_size, periods[-1], gap=GROUP_GAP * scale)
+    assert all(bar_dip(image, group) >= 0.5 for pair in groups.values() for group in pair)

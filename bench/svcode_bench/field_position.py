@@ -18,11 +18,31 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from svcode_core.config import SystemConfig
 from svcode_core.evaluation.metrics import _check_pair, field_zones, psnr_from_mse
 
-__all__ = ["SameContentZones", "half_field_shifts", "moved_scene", "same_content_zones"]
+__all__ = [
+    "SameContentZones",
+    "edge_strip_width",
+    "half_field_shifts",
+    "moved_scene",
+    "same_content_zones",
+]
 
 Shift = tuple[int, int]
+
+
+def edge_strip_width(system: SystemConfig) -> int:
+    """Width of the field's left and right edge strips in object pixels: the sub-view
+    columns that the outer lens columns lose off the sensor (the padding of its columns),
+    so that only six of the nine lenses see them.
+
+    >>> edge_strip_width(SystemConfig.preset("cm2-mini"))
+    16
+    >>> edge_strip_width(SystemConfig.preset("cm2-v2"))
+    100
+    """
+    return system.padding[1]
 
 
 def half_field_shifts(size: int) -> tuple[Shift, Shift, Shift]:

@@ -19,13 +19,16 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = [
+    "GROUP_GAP",
     "PERIODS",
+    "PERIODS_AIRY_RADIUS",
     "POSITIONS",
     "RAYLEIGH_DIP",
     "BarGroup",
     "bar_dip",
     "bar_target",
     "finest_resolved",
+    "periods_for",
 ]
 
 #: field positions: the target's centre in normalised field coordinates ``(row, col)``
@@ -36,8 +39,12 @@ POSITIONS: dict[str, tuple[float, float]] = {
     "ring": (0.0, 0.8),
     "corner": (0.75, 0.75),
 }
-#: line-pair periods in object pixels, finest first
+#: line-pair periods in object pixels, finest first, for a PSF whose Airy radius is
+#: :data:`PERIODS_AIRY_RADIUS` sensor pixels (cm2-mini's; :func:`periods_for` scales them)
 PERIODS: tuple[float, ...] = (2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0)
+PERIODS_AIRY_RADIUS = 2.0
+#: pixels between a position's vertical and horizontal groups at that Airy radius
+GROUP_GAP = 4.0
 #: relative dip between two equal points at the Rayleigh distance (of an Airy pattern)
 RAYLEIGH_DIP = 0.264
 _BARS = 3
@@ -72,6 +79,16 @@ class BarGroup:
         return (self.length, across) if self.vertical else (across, self.length)
 
 
+def periods_for(airy_radius: float) -> tuple[float, ...]:
+    """:data:`PERIODS` scaled to a PSF whose Airy radius is ``airy_radius`` sensor pixels
+    (the object and sensor pixels of every preset keep the same ratio).
+
+    >>> periods_for(8.0)
+    (8.0, 10.0, 12.0, 16.0, 20.0, 24.0, 32.0)
+    """
+    return tuple(period * airy_radius / PERIODS_AIRY_RADIUS for period in PERIODS)
+
+
 def _coverage(size: int, start: float, stop: float) -> np.ndarray:
     """Fraction of each of ``size`` pixels that ``[start, stop)`` covers."""
     edges = np.arange(size + 1, dtype=np.float64)
@@ -89,10 +106,10 @@ def _render(group: BarGroup, size: int) -> np.ndarray:
 
 
 def bar_target(size: int, period: float,
-               positions: Mapping[str, tuple[float, float]] = POSITIONS,
+               positions: Mapping[str, tuple[float, float]] = POSITIONS, gap: float = GROUP_GAP,
                ) -> tuple[np.ndarray, dict[str, tuple[BarGroup, BarGroup]]]:  # fmt: skip
     """An ``(size, size)`` object of brightness 1 holding, at each position, a vertical and
-    a horizontal bar group of ``period``, side by side.
+    a horizontal bar group of ``period``, side by side, ``gap`` pixels apart.
 
     Returns
     -------
@@ -107,7 +124,6 @@ def bar_target(size: int, period: float,
     """
     length = max(10.0, 2.5 * period)
     across = (_BARS - 0.5) * period
-    gap = 4.0
     image = np.zeros((size, size), np.float64)
     groups = {}
     for name, (row, col) in positions.items():

@@ -8,11 +8,13 @@
 # goes to ./ARCH, its learning curve to ./ARCH/log.csv.
 #   multiwiener   MultiWienerNet
 #   fouriernet    SV-FourierNet
-# Usage (from the repository root): bash training/baselines/recipe.sh ARCH
+# Usage (from the repository root): bash training/baselines/recipe.sh ARCH [svcode train
+# options, e.g. --compile]
 # then, to keep the state in the repository: bash training/cm2-mini-v2/snapshot.sh
 # runs/baseline-ARCH training/baselines/ARCH running
 set -euo pipefail
 arch="${1:-}"
+shift || true
 case "$arch" in
   multiwiener|fouriernet) ;;
   *) echo "recipe: multiwiener or fouriernet" >&2; exit 2 ;;
@@ -21,4 +23,4 @@ export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
 here="$(cd "$(dirname "$0")" && pwd)"
 bash "$here/../resume.sh" "runs/baseline-$arch" "$here/$arch" --method "$arch" \
   --mse-weight 100 --normalise-exposure --epochs 20 --batch-size 2 --lr 8e-4 \
-  --warmup-steps 50 --seed 0
+  --warmup-steps 50 --seed 0 "$@"
