@@ -75,7 +75,8 @@ def main() -> None:
              "dips": {name: {str(p): v for p, v in by_period.items()}
                       for name, by_period in per.items()}}
             for label, per in dips.items()]
-    write_report(rows, args.out, write_markdown, system=system.name, periods=periods)
+    write_report(rows, args.out, write_markdown, system=system.name, periods=periods,
+                 pixel_um=system.object_pixel_um)
 
 
 def write_markdown(report: dict, path: Path) -> None:
@@ -86,9 +87,9 @@ def write_markdown(report: dict, path: Path) -> None:
         "field positions through the realistic regime's departed instrument, the nominal "
         "system given, "
         f"{report['threads']} CPU thread(s)). Finest line-pair period resolved (object "
-        f"pixels; a dip of at least {RAYLEIGH_DIP:.1%} between bars in both orientations, "
-        "every coarser period resolved too; – none). Positions in normalised field "
-        "coordinates (row, col): " + ", ".join(
+        f"pixels of {report['pixel_um']:g} µm; a dip of at least {RAYLEIGH_DIP:.1%} between "
+        "bars in both orientations, every coarser period resolved too; – none). Positions "
+        "in normalised field coordinates (row, col): " + ", ".join(
             f"{n} {POSITIONS[n]}" for n in names) + ".", "",
         "| method | " + " | ".join(names) + " |", "|---" * (1 + len(names)) + "|"]
     for row in report["rows"]:
