@@ -14,17 +14,20 @@ SV-CoDe's points are the bundled model's first training run at epochs 10, 15 and
 (their files are read from the git history, where that run's resume states were kept)
 and the bundled model itself (33 epochs of 3200 patches). A baseline's points are its
 own validation log (``training/baselines/ARCH/log.csv``, the same frames and noise,
-exposure gain from the noiseless frame), and its final file when given with
+exposure gain as its trainer measured it: ``training/baselines/README.md``), and its final
+file when given with
 ``--learned``, scored here as the others are.
 
 Run: ``OMP_NUM_THREADS=1 python bench/data_efficiency.py --learned FILE ...`` (about 6
-CPU-minutes; needs the v2 data, which ``training/resume.sh`` makes).
+CPU-minutes; needs the v2 data, which ``training/resume.sh`` makes); ``--merge`` keeps an
+earlier report's rows for files not given now.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import json
 import subprocess
 import tempfile
 from pathlib import Path
@@ -94,6 +97,10 @@ def main() -> None:
     parser.add_argument("--learned", type=Path, nargs="*", default=[],
                         help="trained MultiWienerNet / SV-FourierNet files to score")
     parser.add_argument("--out", type=Path, default=RESULTS / "data_efficiency")
+    parser.add_argument("--merge", action="store_true",
+                        help="keep the rows of an earlier report at --out that this run does "
+                        "not replace (same method and point: e.g. a baseline scored before, "
+                        "whose file is not given now)")
     args = parser.parse_args()
     data = TrainingData(args.data)
     system = SystemConfig.preset("cm2-mini")
@@ -123,6 +130,11 @@ def main() -> None:
         psnr, ssim = score(reconstruct, frames)
         rows.append({"method": method, "point": f"{path} (its best epoch), scored here",
                      "pixels": None, "psnr": psnr, "ssim": ssim})
+    earlier = args.out.with_suffix(".json")
+    if args.merge and earlier.exists():
+        done = {(row["method"], row["point"]) for row in rows}
+        rows += [row for row in json.loads(earlier.read_text())["rows"]
+                 if (row["method"], row["point"]) not in done]
     write_report(rows, args.out, write_markdown)
 
 
