@@ -15,8 +15,7 @@ SV-CoDe's points are the bundled model's first training run at epochs 10, 15 and
 and the bundled model itself (33 epochs of 3200 patches). A baseline's points are its
 own validation log (``training/baselines/ARCH/log.csv``, the same frames and noise,
 exposure gain as its trainer measured it: ``training/baselines/README.md``), and its final
-file when given with
-``--learned``, scored here as the others are.
+file when given with ``--learned``, scored here as the others are.
 
 Run: ``OMP_NUM_THREADS=1 python bench/data_efficiency.py --learned FILE ...`` (about 6
 CPU-minutes; needs the v2 data, which ``training/resume.sh`` makes); ``--merge`` keeps an
