@@ -10,7 +10,7 @@ and LSV-ADMM (``K`` = 3, 50 iterations, 10 at paper scale, λ from the frame).
 
 Run: ``OMP_NUM_THREADS=1 python bench/resolution.py`` (about 3 minutes on one thread).
 ``--system cm2-v2`` measures the paper-scale model, the periods and the groups' spacing
-scaled with its PSF (about 15 minutes).
+scaled with its PSF (about half an hour on one thread beside another job).
 """
 
 from __future__ import annotations

@@ -14,8 +14,8 @@ SV-CoDe on tiles of that size at half-tile stride instead of its planned tiling,
 Run: ``OMP_NUM_THREADS=1 python bench/ring_gap.py [--weights FILE ...]`` (about half a
 minute per model and regime on one thread; LSV-ADMM at 50 iterations about 10 minutes
 per regime, ``--no-admm`` skips it). ``--system cm2-v2`` measures the paper-scale model on
-the paper-scale plan's three scenes, LSV-ADMM at 10 iterations (on one thread about 7
-minutes per regime for SV-CoDe, 16 for LSV-ADMM).
+the paper-scale plan's three scenes, LSV-ADMM at 10 iterations (on one thread beside
+another job about 15 minutes per regime for SV-CoDe, 30 for LSV-ADMM).
 """
 
 from __future__ import annotations
