@@ -14,8 +14,8 @@ frames as they are (``normalise_exposure=False``), and LSV-ADMM (``K`` = 3, 50 i
 
 Run: ``OMP_NUM_THREADS=1 python bench/exposure.py`` (about 15 minutes on one thread;
 ``--no-admm`` skips LSV-ADMM, the slow part). ``--system cm2-v2`` measures the
-paper-scale model on the paper-scale plan's three scenes (about 35 minutes with
-``--normalised-only``).
+paper-scale model on the paper-scale plan's three scenes (with ``--normalised-only``
+about half an hour on two threads).
 """
 
 from __future__ import annotations
