@@ -135,12 +135,11 @@ def planned_scenes(args: argparse.Namespace, system: SystemConfig) -> tuple[tupl
     return tuple(args.regimes or plan.regimes), tuple(args.scenes or plan.scenes)
 
 
-def plan_truths(system: SystemConfig, names: tuple[str, ...] | None = None,
-                ) -> dict[str, tuple[int, np.ndarray]]:  # fmt: skip
-    """The benchmark's scenes ``names`` (default: its plan's for ``system``), each with its
-    index in :data:`~svcode_bench.regimes.SCENES` (the object's seed; the benchmark's noise
-    seed is 100 + index) and its truth."""
-    names = names or plan_for(system).scenes
+def plan_truths(system: SystemConfig) -> dict[str, tuple[int, np.ndarray]]:
+    """The benchmark plan's scenes for ``system``, each with its index in
+    :data:`~svcode_bench.regimes.SCENES` (the object's seed; the benchmark's noise seed is
+    100 + index) and its truth."""
+    names = plan_for(system).scenes
     return {name: (index, scene_object(kind, system.sub_view_size, index, params))
             for index, (name, kind, params) in enumerate(SCENES) if name in names}
 
