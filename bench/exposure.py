@@ -9,23 +9,35 @@ the scale scores the same at every ``s``. *Photons*: the scene made dimmer by a 
 ``f`` before it is imaged by the same camera (fewer photo-electrons: relatively more shot
 and read noise), reconstructed as recorded and divided by ``f``. Methods: the bundled
 SV-CoDe model with its exposure normalisation (the default), the same model fed the
-frames as they are (``normalise_exposure=False``), and LSV-ADMM (``K`` = 3, 50 iterations,
-10 at paper scale, λ from the frame).
+frames as they are (``normalise_exposure=False``), every ``--learned`` MultiWienerNet or
+SV-FourierNet file, and LSV-ADMM (``K`` = 3, 50 iterations, 10 at paper scale, λ from the
+frame).
 
 Run: ``OMP_NUM_THREADS=1 python bench/exposure.py`` (about 15 minutes on one thread;
 ``--no-admm`` skips LSV-ADMM, the slow part). ``--system cm2-v2`` measures the
 paper-scale model on the paper-scale plan's three scenes (with ``--normalised-only``
-about half an hour on two threads).
+about half an hour on two threads). ``--merge`` keeps an earlier report's rows of the
+methods this run leaves out, e.g. ``--no-svcode --no-admm --learned FILE --merge`` adds a
+learned baseline's rows (about a minute).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from pathlib import Path
 
 import numpy as np
-from probes import add_system_argument, admm_auto, plan_truths, realistic_simulator, write_report
+from probes import (
+    Reconstruct,
+    add_system_argument,
+    admm_auto,
+    learned_methods,
+    plan_truths,
+    realistic_simulator,
+    write_report,
+)
 
 from svcode_core.config import SystemConfig
 from svcode_core.evaluation.metrics import psnr
@@ -37,27 +49,44 @@ SCALES = (1.0, 0.2, 0.05, 0.02)
 PHOTON_FRACTIONS = (1.0, 0.25, 0.0625)
 
 
-def methods(system: SystemConfig, admm: bool, as_they_are: bool) -> dict:
-    found = {"SV-CoDe (bundled)": build_reconstructor("svcode", system)}
-    if as_they_are:
-        found["SV-CoDe, frames as they are"] = build_reconstructor(
-            "svcode", system, normalise_exposure=False)
-    if admm:
+def methods(system: SystemConfig, args: argparse.Namespace) -> dict[str, Reconstruct]:
+    found = {}
+    if not args.no_svcode:
+        found["SV-CoDe (bundled)"] = build_reconstructor("svcode", system)
+        if not args.normalised_only:
+            found["SV-CoDe, frames as they are"] = build_reconstructor(
+                "svcode", system, normalise_exposure=False)
+    if not args.no_admm:
         label, reconstructor = admm_auto(system)
         found[label] = reconstructor
-    return found
+    found = {label: lambda raw, r=r: r.reconstruct(raw).reconstruction
+             for label, r in found.items()}
+    return found | dict(learned_methods(system, args.learned))
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_system_argument(parser)
     parser.add_argument("--no-admm", action="store_true", help="skip LSV-ADMM")
+    parser.add_argument("--no-svcode", action="store_true", help="skip the SV-CoDe rows")
     parser.add_argument("--normalised-only", action="store_true",
                         help="skip the model fed the frames as they are")
+    parser.add_argument("--learned", type=Path, nargs="*", default=[],
+                        help="trained MultiWienerNet / SV-FourierNet model files")
+    parser.add_argument("--merge", action="store_true",
+                        help="keep the rows of an earlier report at --out of the methods "
+                        "this run does not measure")
     parser.add_argument("--out", type=Path, default=RESULTS / "exposure",
                         help="output stem (.json and .md; default bench/results/exposure)")
     args = parser.parse_args()
     system = SystemConfig.preset(args.system)
+    earlier, kept = args.out.with_suffix(".json"), []
+    if args.merge and earlier.exists():
+        report = json.loads(earlier.read_text())
+        if report.get("system", "cm2-mini") != system.name:
+            raise SystemExit(f"exposure: {earlier} measured {report.get('system', 'cm2-mini')}, "
+                             f"not {system.name}: give another --out")
+        kept = report["rows"]
     simulator = realistic_simulator(system)
     realistic = simulator.departures
     truths = plan_truths(system)
@@ -67,7 +96,8 @@ def main() -> None:
             recorded[fraction][name] = simulator.simulate(
                 truth * np.float32(fraction), seed=100 + index).measurement.astype(np.float32)
     rows = []
-    for label, reconstructor in methods(system, not args.no_admm, not args.normalised_only).items():
+    measured = methods(system, args)
+    for label, reconstruct in measured.items():
         sweeps = [("exposure", s, 1.0) for s in SCALES]
         sweeps += [("photons", 1.0, f) for f in PHOTON_FRACTIONS[1:]]
         if label.startswith("LSV-ADMM"):  # scale-equivariant by construction: two points
@@ -77,8 +107,7 @@ def main() -> None:
             begin, per_scene = time.perf_counter(), {}
             for name, (_, truth) in truths.items():
                 frame = recorded[fraction][name] * np.float32(scale)
-                estimate = (reconstructor.reconstruct(frame).reconstruction
-                            / np.float32(scale * fraction))
+                estimate = reconstruct(frame) / np.float32(scale * fraction)
                 per_scene[name] = psnr(truth, estimate, 1.0)
             seconds = (time.perf_counter() - begin) / len(truths)
             rows.append({"method": label, "sweep": sweep, "scale": scale,
@@ -87,6 +116,7 @@ def main() -> None:
                          "seconds": seconds, "per_scene": per_scene})
             print(f"{label}: {sweep} s={scale} photons={realistic.photons * fraction:g}: "
                   f"{rows[-1]['psnr']:.2f} dB", flush=True)
+    rows = [row for row in kept if row["method"] not in measured] + rows
     write_report(rows, args.out, write_markdown, system=system.name)
 
 
