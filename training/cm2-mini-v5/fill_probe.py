@@ -29,9 +29,11 @@ from svcode_core.network.models import SVCoDe  # noqa: E402
 from svcode_core.physics.geometry import sensor_coverage  # noqa: E402
 
 
-def tile_coverage(origins: torch.Tensor, height: int, width: int) -> torch.Tensor:
+def tile_coverage(origins: torch.Tensor, height: int, width: int, size: int) -> torch.Tensor:
     """``(B, 9, height, width)``: 1 where each tile's view lies on the sensor."""
     cover = sensor_coverage(SystemConfig.preset("cm2-mini"))
+    if cover.shape[-1] != size:
+        raise SystemExit(f"fill_probe: cm2-mini only (sub-views of {size} px given)")
     cover = torch.nn.functional.pad(cover, (0, width, 0, height))  # tiles padded past S
     rows = [cover[:, r : r + height, c : c + width] for r, c in torch.as_tensor(origins).tolist()]
     return torch.stack(rows)
@@ -41,7 +43,7 @@ def forward_filled(self: SVCoDe, views, origins, sub_view_size):
     """:meth:`SVCoDe.forward` with the off-sensor views filled before the Recon-Net."""
     padded, masks = self._prepare(views, origins, sub_view_size)
     demixed = self.demix.run(padded, masks)
-    cover = tile_coverage(origins, *demixed.shape[-2:]).to(demixed.dtype)
+    cover = tile_coverage(origins, *demixed.shape[-2:], sub_view_size).to(demixed.dtype)
     mean = (demixed * cover).sum(1, keepdim=True) / cover.sum(1, keepdim=True).clamp(min=1)
     recon = self.recon.run(demixed * cover + mean * (1 - cover), masks)
     h, w = views.shape[-2:]
