@@ -11,6 +11,8 @@ from the same start: ``plain`` (each view one input channel, as the model has it
 :func:`svcode_core.physics.geometry.sensor_coverage`), then scores both on whole
 validation sub-views: PSNR in the strips, in the centre and over the field.
 
+Other arms: ``interior`` leaves the patch edges inside the sub-view out of the loss;
+``reflect`` mirrors the image at every padded convolution's edge instead of padding with 0.
 ``--edge-share`` draws that share of every batch from the patches that touch the left or
 right edge, so that the strips weigh in training what they weigh in the field.
 
@@ -50,6 +52,10 @@ def build(arm: str, seed: int) -> ReconNet:
     if arm == "coverage":  # (``interior`` differs from ``plain`` only in its loss)
         torch.manual_seed(seed)
         net.intro = nn.Conv2d(2, net.intro.out_channels, 3, padding=1)
+    if arm == "reflect":  # every padded convolution mirrors the image instead of adding 0
+        for conv in net.modules():
+            if isinstance(conv, nn.Conv2d) and any(conv.padding):
+                conv.padding_mode = "reflect"
     return net
 
 
