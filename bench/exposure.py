@@ -24,7 +24,6 @@ learned baseline's rows (about a minute).
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -33,6 +32,7 @@ from probes import (
     Reconstruct,
     add_system_argument,
     admm_auto,
+    earlier_rows,
     learned_methods,
     plan_truths,
     realistic_simulator,
@@ -80,13 +80,7 @@ def main() -> None:
                         help="output stem (.json and .md; default bench/results/exposure)")
     args = parser.parse_args()
     system = SystemConfig.preset(args.system)
-    earlier, kept = args.out.with_suffix(".json"), []
-    if args.merge and earlier.exists():
-        report = json.loads(earlier.read_text())
-        if report.get("system", "cm2-mini") != system.name:
-            raise SystemExit(f"exposure: {earlier} measured {report.get('system', 'cm2-mini')}, "
-                             f"not {system.name}: give another --out")
-        kept = report["rows"]
+    kept = earlier_rows(args.out, system, "exposure") if args.merge else []
     simulator = realistic_simulator(system)
     realistic = simulator.departures
     truths = plan_truths(system)

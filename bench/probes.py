@@ -144,6 +144,19 @@ def plan_truths(system: SystemConfig) -> dict[str, tuple[int, np.ndarray]]:
             for index, (name, kind, params) in enumerate(SCENES) if name in names}
 
 
+def earlier_rows(out: Path, system: SystemConfig, script: str) -> list[dict]:
+    """The rows of the report at ``out``.json that a ``--merge`` run keeps from ([] when
+    there is none); one of another system is refused, before any work is done."""
+    earlier = out.with_suffix(".json")
+    if not earlier.exists():
+        return []
+    report = json.loads(earlier.read_text())
+    if report.get("system", "cm2-mini") != system.name:
+        raise SystemExit(f"{script}: {earlier} measured {report.get('system', 'cm2-mini')}, "
+                         f"not {system.name}: give another --out")
+    return report["rows"]
+
+
 def write_report(rows: list[dict], out: Path,
                  write_markdown: Callable[[dict, Path], None], **fields: Any) -> None:
     """``out``.json (the rows, the thread count and ``fields``) and ``out``.md from it."""

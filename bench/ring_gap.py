@@ -21,7 +21,6 @@ another job about 15 minutes per regime for SV-CoDe, 30 for LSV-ADMM).
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -31,6 +30,7 @@ from probes import (
     add_system_argument,
     admm_iterations,
     admm_method,
+    earlier_rows,
     learned_methods,
     plan_truths,
     svcode_methods,
@@ -167,12 +167,7 @@ def main() -> None:
                         "not replace (same regime and method)")
     args = parser.parse_args()
     system = SystemConfig.preset(args.system)
-    earlier, kept = args.out.with_suffix(".json"), None
-    if args.merge and earlier.exists():
-        kept = json.loads(earlier.read_text())
-        if kept.get("system", "cm2-mini") != system.name:
-            raise SystemExit(f"ring_gap: {earlier} measured {kept.get('system', 'cm2-mini')}, "
-                             f"not {system.name}: give another --out")
+    kept = earlier_rows(args.out, system, "ring_gap") if args.merge else []
     psfs = model_psfs(system)
     nominal = Simulator(system, CM2Operator.from_psfs(system, psfs))
     options, knob = {"pool_window": args.pool_window}, ""
@@ -193,10 +188,8 @@ def main() -> None:
     for regime in args.regimes:  # each regime's instrument is built once for every method
         simulator = regime_simulator(system, regime, nominal)
         rows += regime_rows(regime, simulator, truths, methods)
-    if kept is not None:
-        done = {(row["regime"], row["method"]) for row in rows}
-        rows = [row for row in kept["rows"]
-                if (row["regime"], row["method"]) not in done] + rows
+    done = {(row["regime"], row["method"]) for row in rows}
+    rows = [row for row in kept if (row["regime"], row["method"]) not in done] + rows
     rows.sort(key=lambda row: list(REGIMES).index(row["regime"]))
     write_report(rows, args.out, write_markdown, system=system.name,
                  strip=edge_strip_width(system))
