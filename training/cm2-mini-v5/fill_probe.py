@@ -15,6 +15,7 @@ Usage (from the repository root)::
 
 from __future__ import annotations
 
+import functools
 import sys
 from pathlib import Path
 
@@ -29,12 +30,18 @@ from svcode_core.network.models import SVCoDe  # noqa: E402
 from svcode_core.physics.geometry import sensor_coverage  # noqa: E402
 
 
-def tile_coverage(origins: torch.Tensor, height: int, width: int, size: int) -> torch.Tensor:
-    """``(B, 9, height, width)``: 1 where each tile's view lies on the sensor."""
+@functools.cache
+def mini_coverage(size: int) -> torch.Tensor:
+    """cm2-mini's :func:`sensor_coverage` ``(9, S, S)``, computed once; refuses another size."""
     cover = sensor_coverage(SystemConfig.preset("cm2-mini"))
     if cover.shape[-1] != size:
         raise SystemExit(f"fill_probe: cm2-mini only (sub-views of {size} px given)")
-    cover = torch.nn.functional.pad(cover, (0, width, 0, height))  # tiles padded past S
+    return cover
+
+
+def tile_coverage(origins: torch.Tensor, height: int, width: int, size: int) -> torch.Tensor:
+    """``(B, 9, height, width)``: 1 where each tile's view lies on the sensor."""
+    cover = torch.nn.functional.pad(mini_coverage(size), (0, width, 0, height))  # tiles past S
     rows = [cover[:, r : r + height, c : c + width] for r, c in torch.as_tensor(origins).tolist()]
     return torch.stack(rows)
 
