@@ -6,7 +6,8 @@ bars per period, at four field positions at once) of every period is imaged thro
 realistic regime's departed instrument (the nominal system given to the methods, one noise
 seed per period) and reconstructed; a group is resolved when the dip between its bars
 reaches the Rayleigh dip (26.4 %), in both orientations. Methods: the bundled SV-CoDe model
-and LSV-ADMM (``K`` = 3, 50 iterations, 10 at paper scale, λ from the frame).
+and LSV-ADMM (``K`` = 3, 50 iterations, 10 at paper scale, λ from the frame);
+``--refine-periphery N`` adds the bundled model with its periphery refined.
 
 Run: ``OMP_NUM_THREADS=1 python bench/resolution.py`` (about 3 minutes on one thread).
 ``--system cm2-v2`` measures the paper-scale model, the periods and the groups' spacing
@@ -42,6 +43,9 @@ def main() -> None:
     add_system_argument(parser)
     parser.add_argument("--weights", type=Path, nargs="*", default=[],
                         help="further SV-CoDe model files")
+    parser.add_argument("--refine-periphery", type=int, default=0, metavar="N",
+                        help="also the bundled model with its periphery refined by N "
+                             "LSV-ADMM iterations")
     parser.add_argument("--no-admm", action="store_true", help="skip LSV-ADMM")
     parser.add_argument("--out", type=Path, default=RESULTS / "resolution",
                         help="output stem (.json and .md; default bench/results/resolution)")
@@ -51,6 +55,9 @@ def main() -> None:
     gap = GROUP_GAP * system.optics.airy_radius / PERIODS_AIRY_RADIUS
     simulator = realistic_simulator(system)
     methods = {"SV-CoDe (bundled)": build_reconstructor("svcode", system)}
+    if args.refine_periphery:
+        methods[f"SV-CoDe (bundled), refine {args.refine_periphery}"] = build_reconstructor(
+            "svcode", system, refine_periphery=args.refine_periphery)
     for path in args.weights:
         methods[f"SV-CoDe: {path}"] = build_reconstructor("svcode", system, path)
     if not args.no_admm:

@@ -346,7 +346,7 @@ class Reconstructor(BaseReconstructor):
         LSV-ADMM iterations that refine the field's periphery from the network's
         reconstruction (:class:`~svcode_core.methods.periphery.PeripheryRefinement`); 0
         (default): none. 10 raised the bundled ``cm2-mini`` model's held-out scores in
-        every regime, the outer ring most, for 2–3× the time of a frame.
+        every regime, the outer ring most, for 2–4× the time of a frame.
     normalise_exposure : bool
         Bring each frame to the model's training level and scale the output back
         (default); ``False`` runs the frames as they are.
