@@ -107,6 +107,32 @@ def test_config_json_round_trip_and_errors():
         ModelConfig.from_dict({"depth": 3})
     with pytest.raises(ConfigError, match="coord_gate"):
         ModelConfig.from_dict({"coord_gate": "yes"})
+    with pytest.raises(ConfigError, match="padding: must be one of"):
+        ModelConfig.from_dict({"padding": "mirror"})
+    assert ModelConfig.from_dict({}).padding == "zeros"  # files from before the option
+
+
+def test_reflect_padding_mirrors_every_padded_convolution(two_level_model_config):
+    """The option sets every padded convolution of both stages and changes no weight: the
+    same weights give the same interior and another border; the smallest tiles (one pixel
+    at the coarsest level before padding) still run."""
+    config = two_level_model_config.replace(pool_window=8)  # the interior stays local
+    zeros = _model(config)
+    mirrored = SVCoDe(config.replace(padding="reflect"))
+    mirrored.load_state_dict(zeros.state_dict())
+    padded = [m for m in mirrored.modules() if isinstance(m, torch.nn.Conv2d) and any(m.padding)]
+    assert len(padded) > 4 and {m.padding_mode for m in padded} == {"reflect"}
+    torch.manual_seed(2)
+    views = torch.rand(1, 9, 64, 64)
+    with torch.no_grad():
+        a, b = (model.eval()(views, [[0, 0]], 64)[1][0, 0] for model in (zeros, mirrored))
+        border = (a - b).abs()
+        assert border[:, 0].max() > 1e-3 and border[0, :].max() > 1e-3
+        small = mirrored(torch.rand(2, 9, 3, 5), [[0, 0], [40, 7]], 48)
+    centre = slice(24, 40)  # farther from the edges than the receptive radius
+    # equal up to rounding (a mirrored convolution pads first, then sums in its own order)
+    assert border[centre, centre].max() <= 4 * torch.finfo(torch.float32).eps
+    assert small[1].shape == (2, 1, 3, 5) and torch.isfinite(small[1]).all()
 
 
 # ------------------------------------------------------------ positional encoding

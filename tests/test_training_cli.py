@@ -127,6 +127,15 @@ def test_train_from_initial_weights(tiny_system, tiny_model_config, tmp_path, ca
     assert main(shorter) == 2
     assert "already has the lens context of reach 2" in capsys.readouterr().err
     assert not (tmp_path / "shorter").exists()
+    # mirrored padding changes no weights: the file's start under the run's padding
+    mirrored = [*args[:4], str(tmp_path / "mirrored"), *args[5:], "--padding", "reflect"]
+    assert main(mirrored) == 0
+    tuned, _ = load_model(tmp_path / "mirrored" / "best.safetensors", tiny_system)
+    assert tuned.model_config == config.replace(padding="reflect")
+    assert main([*mirrored[:-1], "mirror"]) == 2
+    assert "padding: must be one of ('zeros', 'reflect'), got 'mirror'" in capsys.readouterr().err
+    assert main([*args[:7], *args[9:], "--method", "fouriernet", "--padding", "reflect"]) == 2
+    assert "--padding applies to SV-CoDe" in capsys.readouterr().err
     assert main([*args, "--method", "fouriernet", "--lens-context"]) == 2
     assert main([*args, "--ablation", "no-pe"]) == 2
     assert "leave out --model-config and --ablation" in capsys.readouterr().err

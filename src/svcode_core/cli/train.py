@@ -60,6 +60,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         "pitches left and right (for the field's edge strips; default REACH "
                         "1); with --init, the file's model gains the inputs it lacks with "
                         "zero weights")
+    parser.add_argument("--padding", metavar="{zeros,reflect}",
+                        help="SV-CoDe: how the convolutions extend a tile past its edge, "
+                        "with zeros or mirrored (default: zeros, or the --init file's)")
     parser.add_argument("--ablation", default="none", choices=sorted(ABLATIONS),
                         help="switch off the coordinate gate or the positional encoding")
     parser.add_argument("--epochs", type=int, default=defaults.epochs)
@@ -205,11 +208,13 @@ def run(args: argparse.Namespace) -> int:
         init = None
         if args.init is None:
             model_config = model_config_from(args.model_config or "mini", args.ablation,
-                                             args.method, args.lens_context)  # fmt: skip
+                                             args.method, args.lens_context,
+                                             args.padding)  # fmt: skip
         else:
             init, model_config = initial_weights(args, data.system)
             model_config = with_svcode_options(model_config, args.method,
-                                               lens_context=args.lens_context)
+                                               lens_context=args.lens_context,
+                                               padding=args.padding)
         trainer = Trainer(data, args.out, model_config, config, device=device, dist=dist,
                           progress=not args.no_progress, init_weights=init)
         trainer.fit(resume=args.resume)

@@ -96,7 +96,10 @@ class TiledModel(nn.Module):
         if not isinstance(sub_view_size, int) or sub_view_size < 2:
             raise ValueError(f"sub_view_size must be an integer >= 2, got {sub_view_size!r}")
         h, w = views.shape[-2:]
-        padded = F.pad(views, (0, -w % self.stride, 0, -h % self.stride))
+        # mirrored padding needs 2 pixels at the coarsest level
+        least = 2 * self.stride if self.model_config.padding == "reflect" else 0
+        height, width = (max(n + -n % self.stride, least) for n in (h, w))
+        padded = F.pad(views, (0, width - w, 0, height - h))
         return padded, self.masks_for(origins.long(), sub_view_size, tuple(padded.shape[-2:]))
 
     def masks_for(

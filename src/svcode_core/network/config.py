@@ -10,13 +10,17 @@ from typing import Any, TypeVar
 from ..config import ConfigError, check_int
 from ..physics.geometry import context_shifts
 
-__all__ = ["PE_SCHEMES", "BlockConfig", "ModelConfig"]
+__all__ = ["PADDINGS", "PE_SCHEMES", "BlockConfig", "ModelConfig"]
 
 PE_SCHEMES = ("paper", "code")
 """Frequency schemes of the positional encoding: ``"paper"`` uses ``2^k π`` (k = 0..L-1),
 ``"code"`` (the published implementation) uses ``0.5 π · (1..L)``."""
 
 OUTPUTS = ("sigmoid", "linear")
+
+PADDINGS = ("zeros", "reflect")
+"""How a padded convolution extends its input past the edge: with zeros (NAFNet's) or
+mirrored."""
 
 _Config = TypeVar("_Config", bound="BlockConfig")
 
@@ -152,6 +156,11 @@ class ModelConfig(BlockConfig):
         at zero in evaluation mode: trained from scratch on dark CM² scenes, sigmoid
         outputs can saturate at zero early on and never recover (measured on
         ``cm2-mini``: every demixed view ≈ 1e-6 after one epoch), linear ones cannot.
+    padding : {"zeros", "reflect"}
+        How every padded convolution of both stages extends its input past the tile's
+        edge: ``"zeros"`` (NAFNet's) or ``"reflect"`` (mirrored, so that the sub-view's
+        border does not look like a dark object beyond it). It changes no weights. Model
+        files written before this option existed load with ``"zeros"``.
     """
 
     width: int = 32
@@ -175,6 +184,7 @@ class ModelConfig(BlockConfig):
     context_reach: int = 1
     max_width: int = 0
     pixel_unshuffle: int = 1
+    padding: str = "zeros"
 
     block_lists = ("demix_enc_blocks", "demix_dec_blocks", "recon_enc_blocks",
                    "recon_dec_blocks")  # fmt: skip
@@ -244,6 +254,8 @@ class ModelConfig(BlockConfig):
             raise ConfigError(f"pe_scheme: must be one of {PE_SCHEMES}, got {self.pe_scheme!r}")
         if self.output not in OUTPUTS:
             raise ConfigError(f"output: must be one of {OUTPUTS}, got {self.output!r}")
+        if self.padding not in PADDINGS:
+            raise ConfigError(f"padding: must be one of {PADDINGS}, got {self.padding!r}")
         for name in ("coord_gate", "positional_encoding", "lens_specific_first_block",
                      "lens_context"):
             if not isinstance(getattr(self, name), bool):

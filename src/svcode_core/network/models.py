@@ -250,6 +250,9 @@ class _ViewNet(nn.Module):
         self.unet = UNet(config, enc_blocks, middle_blocks, dec_blocks)
         self.ending = nn.Conv2d(config.width, out_channels * self.unshuffle**2, 3, padding=1)
         set_pooling(self, config.pool_window)
+        for conv in self.modules():  # every padded convolution extends its input alike
+            if isinstance(conv, nn.Conv2d) and any(conv.padding):
+                conv.padding_mode = config.padding
 
     @property
     def levels(self) -> int:

@@ -38,7 +38,7 @@ def config_class(method: str) -> type:
 
 
 def model_config_from(spec: str, ablation: str = "none", method: str = "svcode",
-                      lens_context: int = 0) -> AnyModelConfig:
+                      lens_context: int = 0, padding: str | None = None) -> AnyModelConfig:
     """The configuration of ``method`` from ``"mini"``, ``"reference"`` (SV-CoDe only) or a
     JSON file, with the SV-CoDe options (:func:`with_svcode_options`).
 
@@ -59,16 +59,17 @@ def model_config_from(spec: str, ablation: str = "none", method: str = "svcode",
     else:
         path = _config_file(spec, "neither mini, reference nor")
         config = ModelConfig.from_json(path.read_text(encoding="utf-8"))
-    return with_svcode_options(config, method, ablation, lens_context)
+    return with_svcode_options(config, method, ablation, lens_context, padding)
 
 
 def with_svcode_options(config: AnyModelConfig, method: str, ablation: str = "none",
-                        lens_context: int = 0) -> AnyModelConfig:
-    """``config`` with an ablation (:data:`ABLATIONS`) and the lens context of reach
+                        lens_context: int = 0, padding: str | None = None) -> AnyModelConfig:
+    """``config`` with an ablation (:data:`ABLATIONS`), the lens context of reach
     ``lens_context`` (0: none; :attr:`~svcode_core.network.ModelConfig.lens_context`,
-    :attr:`~svcode_core.network.ModelConfig.context_reach`) applied; both belong to
-    SV-CoDe and are refused for the configuration of another method. A reach shorter than
-    the one ``config`` already has is refused too.
+    :attr:`~svcode_core.network.ModelConfig.context_reach`) and the convolutions'
+    ``padding`` (``None``: the configuration's) applied; they belong to SV-CoDe and are
+    refused for the configuration of another method. A reach shorter than the one
+    ``config`` already has is refused too.
 
     Examples
     --------
@@ -76,13 +77,16 @@ def with_svcode_options(config: AnyModelConfig, method: str, ablation: str = "no
     11
     """
     asked = [flag for flag, on in (("--ablation", ablation != "none"),
-                                   ("--lens-context", lens_context)) if on]
+                                   ("--lens-context", lens_context),
+                                   ("--padding", padding is not None)) if on]
     if not isinstance(config, ModelConfig):
         if asked:
             verb = "applies" if len(asked) == 1 else "apply"
             raise ValueError(f"{' and '.join(asked)} {verb} to SV-CoDe, not to --method {method}")
         return config
     config = config.replace(**ABLATIONS[ablation])
+    if padding is not None:
+        config = config.replace(padding=padding).validate()
     if not lens_context:
         return config
     if config.lens_context and lens_context < config.context_reach:

@@ -499,13 +499,14 @@ class Trainer:
     def _load_initial_weights(self, path: Path) -> None:
         source, _ = load_model(path)
         config = self.model_config
-        if (isinstance(config, ModelConfig) and isinstance(source, SVCoDe)
-                and source.model_config.views_per_lens < config.views_per_lens
-                and source.model_config.replace(lens_context=True,
-                                                context_reach=config.context_reach) == config):
-            # fine-tuning that adds the lens context or lengthens its reach
-            source = with_lens_context(source, config.context_reach)
-        if type(source) is not type(self.model) or source.model_config != self.model_config:
+        if isinstance(config, ModelConfig) and isinstance(source, SVCoDe):
+            config = config.replace(padding=source.model_config.padding)  # changes no weights
+            if (source.model_config.views_per_lens < config.views_per_lens
+                    and source.model_config.replace(lens_context=True,
+                                                    context_reach=config.context_reach) == config):
+                # fine-tuning that adds the lens context or lengthens its reach
+                source = with_lens_context(source, config.context_reach)
+        if type(source) is not type(self.model) or source.model_config != config:
             raise ValueError(f"{path}: a {type(source).__name__} model of another network "
                              f"configuration than this run's {type(self.model).__name__}")
         try:
