@@ -511,6 +511,9 @@ def test_benchmark_labels_and_scores_an_ablation_model(tiny_system, tiny_op, tin
                       SVCoDe(config.replace(positional_encoding=False, lens_context=True)),
                       tiny_system)
     assert model_label(wide) == "SV-CoDe (no CoordGate, no PE, lens context)"
+    mirrored = save_model(tmp_path / "mirrored.safetensors",
+                          SVCoDe(tiny_model_config.replace(padding="reflect")), tiny_system)
+    assert model_label(mirrored) == "SV-CoDe (mirrored padding)"
     truth = disc_object(tiny_system.sub_view_size).numpy()
     scenes = [Scene("disc", truth, tiny_op.measure(torch.from_numpy(truth)).numpy())]
     (row,) = svcode_rows(path, tiny_system, scenes, all_knobs=False)

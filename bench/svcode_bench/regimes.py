@@ -362,12 +362,14 @@ def admm_default_row(operator: CM2Operator, scenes: list[Scene]) -> Row:
 def model_label(weights: Path) -> str:
     """``SV-CoDe``, or e.g. ``SV-CoDe (no CoordGate, no PE)`` for a model with ablations,
     ``SV-CoDe (lens context)`` for one with
-    :attr:`~svcode_core.network.ModelConfig.lens_context`."""
+    :attr:`~svcode_core.network.ModelConfig.lens_context`, ``SV-CoDe (mirrored padding)``
+    for one with :attr:`~svcode_core.network.ModelConfig.padding` ``"reflect"``."""
     config = read_model_metadata(weights)["model_config"]
     notes = [f"no {name}" for name, on in (("CoordGate", config.coord_gate),
                                            ("PE", config.positional_encoding)) if not on]
     reach = f", reach {config.context_reach}" if config.context_reach > 1 else ""
     notes += [f"lens context{reach}"] if config.lens_context else []
+    notes += ["mirrored padding"] if config.padding == "reflect" else []
     return "SV-CoDe" + (f" ({', '.join(notes)})" if notes else "")
 
 
@@ -574,11 +576,12 @@ def run_benchmark(
             if trace:  # LSV-ADMM given SV-CoDe's time on each frame
                 new.append(equal_time_row(traced[0], trace, main[0]))
             progress(tick(regime, "SV-CoDe", len(new), time.perf_counter() - start))
+        labels = [model_label(path) for path in [*ablations, *([weights] if weights else [])]]
         for path in ablations:
             extra = svcode_rows(path, system, scenes, all_knobs=False, cache=cache,
                                 footprint=plan.footprint)  # fmt: skip
-            if weights is not None and model_label(path) == model_label(weights):
-                for row in extra:  # the same network as the main rows: told apart by file
+            if labels.count(model_label(path)) > 1:
+                for row in extra:  # the same network as other rows: told apart by file
                     row.method += f" ({path.parent.name}/{path.name})"
             new += extra
         if "learned" in methods:
