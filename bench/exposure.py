@@ -39,7 +39,7 @@ from probes import (
     write_report,
 )
 
-from svcode_core.config import SystemConfig
+from svcode_core.config import SystemConfig, load_system
 from svcode_core.evaluation.metrics import psnr
 from svcode_core.methods.build import build_reconstructor
 
@@ -64,7 +64,8 @@ def methods(system: SystemConfig, args: argparse.Namespace) -> dict[str, Reconst
     return found | dict(learned_methods(system, args.learned))
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
+    """The script; ``argv`` its options (default: the command line's)."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_system_argument(parser)
     parser.add_argument("--no-admm", action="store_true", help="skip LSV-ADMM")
@@ -78,8 +79,8 @@ def main() -> None:
                         "this run does not measure")
     parser.add_argument("--out", type=Path, default=RESULTS / "exposure",
                         help="output stem (.json and .md; default bench/results/exposure)")
-    args = parser.parse_args()
-    system = SystemConfig.preset(args.system)
+    args = parser.parse_args(argv)
+    system = load_system(args.system)
     kept = earlier_rows(args.out, system, "exposure") if args.merge else []
     simulator = realistic_simulator(system)
     realistic = simulator.departures

@@ -102,10 +102,10 @@ def realistic_simulator(system: SystemConfig) -> Simulator:
 
 
 def add_system_argument(parser: argparse.ArgumentParser) -> None:
-    """``--system``: the preset measured (default ``cm2-mini``)."""
+    """``--system``: the preset or system file measured (default ``cm2-mini``)."""
     parser.add_argument("--system", default="cm2-mini",
-                        help="preset (default cm2-mini; cm2-v2 runs the paper-scale plan's "
-                        "scenes)")  # fmt: skip
+                        help="preset or system JSON file (default cm2-mini; cm2-v2 runs the "
+                        "paper-scale plan's scenes)")  # fmt: skip
 
 
 def add_check_arguments(parser: argparse.ArgumentParser, what: str, name: str) -> None:

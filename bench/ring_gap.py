@@ -44,7 +44,7 @@ from svcode_bench.field_position import (
     same_content_zones,
 )
 from svcode_bench.regimes import REGIMES, regime_simulator
-from svcode_core.config import SystemConfig
+from svcode_core.config import load_system
 from svcode_core.evaluation.metrics import edge_columns, image_quality
 from svcode_core.physics.cm2 import CM2Operator
 from svcode_core.physics.psf_io import model_psfs
@@ -140,7 +140,8 @@ def write_markdown(report: dict, path: Path) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
+    """The script; ``argv`` its options (default: the command line's)."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_system_argument(parser)
     parser.add_argument("--weights", type=Path, nargs="*", default=[],
@@ -165,8 +166,8 @@ def main() -> None:
     parser.add_argument("--merge", action="store_true",
                         help="keep the rows of an earlier report at --out that this run does "
                         "not replace (same regime and method)")
-    args = parser.parse_args()
-    system = SystemConfig.preset(args.system)
+    args = parser.parse_args(argv)
+    system = load_system(args.system)
     kept = earlier_rows(args.out, system, "ring_gap") if args.merge else []
     psfs = model_psfs(system)
     nominal = Simulator(system, CM2Operator.from_psfs(system, psfs))

@@ -155,3 +155,20 @@ def test_bench_never_writes_over_a_report_on_another_system(tiny_system, tmp_pat
     assert main(["bench", "--quick", "--system", str(system_json), "--methods", "wiener",
                  "--out", str(out)]) == 2
     assert "holds a report on system 'cm2-v2'" in capsys.readouterr().err
+
+
+def test_bench_adds_the_ring_gap_and_the_exposure_sweeps(tiny_system, tmp_path, capsys):
+    """``--ring-gap`` and ``--exposure`` run the checkout's scripts for the methods and
+    regimes asked for, into the same folder; LSV-ADMM is scale-equivariant, so its two
+    exposure points agree to float32 rounding."""
+    system_json = tiny_system.save(tmp_path / "tiny.json")
+    out = tmp_path / "results"
+    assert main(["bench", "--quick", "--system", str(system_json), "--methods", "admm",
+                 "--regimes", "realistic", "--ring-gap", "--exposure", "--out", str(out)]) == 0
+    gap = json.loads((out / "ring_gap.json").read_text())
+    assert gap["system"] == "tiny" and {r["regime"] for r in gap["rows"]} == {"realistic"}
+    assert all(r["method"].startswith("LSV-ADMM") for r in gap["rows"])
+    sweep = json.loads((out / "exposure.json").read_text())
+    scales = {r["scale"]: r["psnr"] for r in sweep["rows"] if r["sweep"] == "exposure"}
+    assert set(scales) == {1.0, 0.05} and abs(scales[1.0] - scales[0.05]) < 0.01
+    assert (out / "ring_gap.md").is_file() and (out / "exposure.md").is_file()

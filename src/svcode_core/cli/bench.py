@@ -39,8 +39,9 @@ DEFAULT_METHODS = tuple(METHODS)
 
 def engine(module: str = "svcode_bench.regimes") -> ModuleType:
     """The benchmark engine's ``module`` (default its ``regimes``; ``"svcode_bench"`` is
-    the light package, without torch): importable as it is, or from the checkout's
-    ``bench`` folder (added to the end of ``sys.path``).
+    the light package, without torch; ``"ring_gap"`` and the other script names are the
+    checkout's scripts): importable as it is, or from the checkout's ``bench`` folder
+    (added to the end of ``sys.path``).
 
     Raises
     ------
@@ -50,7 +51,7 @@ def engine(module: str = "svcode_bench.regimes") -> ModuleType:
     try:
         return importlib.import_module(module)
     except ModuleNotFoundError as err:
-        if err.name != "svcode_bench":
+        if err.name != module.split(".")[0]:
             raise
     if not (CHECKOUT_BENCH / "svcode_bench").is_dir():
         raise NotInstalled('svcode bench runs the benchmark engine of a source checkout '
@@ -121,6 +122,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         "--out (same system and scenes); rows of the methods run now "
                         "replace theirs, and LSV-ADMM at SV-CoDe's time is read out again "
                         "at SV-CoDe's new seconds")  # fmt: skip
+    parser.add_argument("--ring-gap", action="store_true",
+                        help="also the same content at the centre and in the outer ring "
+                        "(bench/ring_gap.py) for the methods run: OUT/ring_gap.{json,md}")
+    parser.add_argument("--exposure", action="store_true",
+                        help="also the exposure and photon sweeps (bench/exposure.py) for "
+                        "the methods run: OUT/exposure.{json,md}")
     add_progress_argument(parser, "progress lines")
     parser.set_defaults(func=run)
 
@@ -192,4 +199,23 @@ def run(args: argparse.Namespace) -> int:
         report["rows"] = [row for row in report["rows"] if row["method"] not in left_out]
     stem = bench.write_report(report, args.out, args.merge)
     print(f"wrote {stem}.json, .md and .png ({report['total_seconds'] / 60:.1f} min)")
+    for script, asked in (("ring_gap", args.ring_gap), ("exposure", args.exposure)):
+        if asked:
+            engine(script).main(probe_options(args, names, script))
     return 0
+
+
+def probe_options(args: argparse.Namespace, names: tuple[str, ...], script: str) -> list[str]:
+    """The options of the checkout's ``bench/<script>.py`` that measure what this run
+    measured: the same system, SV-CoDe (the bundled model, and ``--weights`` beside it
+    in the ring gap), LSV-ADMM and the ``--learned`` files as ``--methods`` asks, the
+    regimes (ring gap), the report ``OUT/<script>`` and ``--merge``."""
+    options = ["--system", str(args.system or "cm2-mini"), "--out", str(args.out / script)]
+    options += [] if "svcode" in names else ["--no-svcode"]
+    options += [] if "admm" in names else ["--no-admm"]
+    learned = [str(path) for path in args.learned]
+    options += ["--learned", *learned] if learned else []
+    if script == "ring_gap":
+        options += ["--weights", str(args.weights)] if args.weights else []
+        options += ["--regimes", *args.regimes] if args.regimes else []
+    return options + (["--merge"] if args.merge else [])

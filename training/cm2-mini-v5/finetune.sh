@@ -1,0 +1,27 @@
+#!/usr/bin/env bash
+# Four more epochs of the bundled cm2-mini model (the recipe of its last fine-tuning,
+# context-ring4: lr 2e-4, MSE weight 100, edge and ring weights 4, seed 12), one arm per
+# question:
+#   zeros     as the model is (zero padding): the control
+#   reflect   every padded convolution of both stages mirrors (--padding reflect): does
+#             mirrored padding win the border back for the whole model?
+#   edge16    the edge strips' squared error weighted 16 times instead of 4: do the
+#             strips follow their weight in the loss?
+# Resumable over sessions (../resume.sh).
+# Usage (from the repository root): bash training/cm2-mini-v5/finetune.sh ARM
+set -euo pipefail
+arm="$1"
+here="$(cd "$(dirname "$0")" && pwd)"
+case "$arm" in
+  zeros) extra=();;
+  reflect) extra=(--padding reflect);;
+  edge16) extra=(--edge-weight 16);;
+  *) echo "finetune.sh: zeros, reflect or edge16" >&2; exit 2;;
+esac
+export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
+# the arm's options come last: they override these
+bash "$here/../resume.sh" "runs/v5-$arm" "$here/$arm" \
+  --init "$here/../../src/svcode_core/weights/cm2-mini.safetensors" \
+  --batch-size 8 --same-origin 8 --patches-per-epoch 3200 --val-patches 128 \
+  --mse-weight 100 --edge-weight 4 --ring-weight 4 --epochs 4 --lr 2e-4 \
+  --warmup-steps 100 --seed 12 "${extra[@]}"
