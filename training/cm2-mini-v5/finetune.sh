@@ -7,6 +7,7 @@
 #             mirrored padding win the border back for the whole model?
 #   edge16    the edge strips' squared error weighted 16 times instead of 4: do the
 #             strips follow their weight in the loss?
+#   edge16-long  4 more epochs of edge16's model (seed 13, the same weights): do they go on?
 # Resumable over sessions (../resume.sh).
 # Usage (from the repository root): bash training/cm2-mini-v5/finetune.sh ARM
 set -euo pipefail
@@ -16,7 +17,8 @@ case "$arm" in
   zeros) extra=();;
   reflect) extra=(--padding reflect);;
   edge16) extra=(--edge-weight 16);;
-  *) echo "finetune.sh: zeros, reflect or edge16" >&2; exit 2;;
+  edge16-long) extra=(--edge-weight 16 --seed 13 --init "$here/edge16/best.safetensors");;
+  *) echo "finetune.sh: zeros, reflect, edge16 or edge16-long" >&2; exit 2;;
 esac
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
 # the arm's options come last: they override these
