@@ -172,3 +172,24 @@ def test_bench_adds_the_ring_gap_and_the_exposure_sweeps(tiny_system, tmp_path, 
     scales = {r["scale"]: r["psnr"] for r in sweep["rows"] if r["sweep"] == "exposure"}
     assert set(scales) == {1.0, 0.05} and abs(scales[1.0] - scales[0.05]) < 0.01
     assert (out / "ring_gap.md").is_file() and (out / "exposure.md").is_file()
+
+
+def test_ablations_of_one_network_are_told_apart_by_file(tiny_system, tiny_model_config,
+                                                         tmp_path):
+    from svcode_core.methods.model_file import save_model
+    from svcode_core.network import SVCoDe
+
+    system_json = tiny_system.save(tmp_path / "tiny.json")
+    paths = []
+    for name in ("a", "b", "c"):
+        config = tiny_model_config.replace(padding="reflect" if name == "c" else "zeros")
+        (tmp_path / name).mkdir()
+        paths.append(save_model(tmp_path / name / "best.safetensors", SVCoDe(config),
+                                tiny_system))
+    out = tmp_path / "results"
+    assert main(["bench", "--quick", "--system", str(system_json), "--methods", "--ablations",
+                 *map(str, paths), "--regimes", "matched", "--out", str(out)]) == 0
+    report = json.loads((out / "regimes.json").read_text())
+    assert [r["method"] for r in report["rows"]] == [
+        "SV-CoDe (a/best.safetensors)", "SV-CoDe (b/best.safetensors)",
+        "SV-CoDe (mirrored padding)"]

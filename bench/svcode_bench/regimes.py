@@ -537,6 +537,10 @@ def run_benchmark(
             notes.append("SV-CoDe rows skipped: no --weights given and no bundled model")
     if "learned" in methods and not learned:
         notes.append("learned-baseline rows skipped: no --learned model files given")
+    labels = [model_label(path) for path in [*ablations, *([weights] if weights else [])]]
+    # ablations of the same network as other rows: told apart by file
+    by_file = {path for path, label in zip(ablations, labels[: len(ablations)], strict=True)
+               if labels.count(label) > 1}  # fmt: skip
     rows: list[Row] = []
     cache: dict = {}
     departures: dict[str, Any] = {}
@@ -576,12 +580,11 @@ def run_benchmark(
             if trace:  # LSV-ADMM given SV-CoDe's time on each frame
                 new.append(equal_time_row(traced[0], trace, main[0]))
             progress(tick(regime, "SV-CoDe", len(new), time.perf_counter() - start))
-        labels = [model_label(path) for path in [*ablations, *([weights] if weights else [])]]
         for path in ablations:
             extra = svcode_rows(path, system, scenes, all_knobs=False, cache=cache,
                                 footprint=plan.footprint)  # fmt: skip
-            if labels.count(model_label(path)) > 1:
-                for row in extra:  # the same network as other rows: told apart by file
+            if path in by_file:
+                for row in extra:
                     row.method += f" ({path.parent.name}/{path.name})"
             new += extra
         if "learned" in methods:

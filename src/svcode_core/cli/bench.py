@@ -210,7 +210,7 @@ def probe_options(args: argparse.Namespace, names: tuple[str, ...], script: str)
     measured: the same system, SV-CoDe (the bundled model, and ``--weights`` beside it
     in the ring gap), LSV-ADMM and the ``--learned`` files as ``--methods`` asks, the
     regimes (ring gap), the report ``OUT/<script>`` and ``--merge``."""
-    options = ["--system", str(args.system or "cm2-mini"), "--out", str(args.out / script)]
+    options = ["--system", str(args.system), "--out", str(args.out / script)]
     options += [] if "svcode" in names else ["--no-svcode"]
     options += [] if "admm" in names else ["--no-admm"]
     learned = [str(path) for path in args.learned]
