@@ -8,6 +8,8 @@
 #   edge16    the edge strips' squared error weighted 16 times instead of 4: do the
 #             strips follow their weight in the loss?
 #   edge16-long  4 more epochs of edge16's model (seed 13, the same weights): do they go on?
+#   edge32-ring8 4 more epochs of edge16's model (seed 13) with the strips weighted 32 and
+#             the outer ring 8: does the ring keep up when both weights rise?
 # Resumable over sessions (../resume.sh).
 # Usage (from the repository root): bash training/cm2-mini-v5/finetune.sh ARM
 set -euo pipefail
@@ -18,7 +20,9 @@ case "$arm" in
   reflect) extra=(--padding reflect);;
   edge16) extra=(--edge-weight 16);;
   edge16-long) extra=(--edge-weight 16 --seed 13 --init "$here/edge16/best.safetensors");;
-  *) echo "finetune.sh: zeros, reflect, edge16 or edge16-long" >&2; exit 2;;
+  edge32-ring8) extra=(--edge-weight 32 --ring-weight 8 --seed 13
+                       --init "$here/edge16/best.safetensors");;
+  *) echo "finetune.sh: zeros, reflect, edge16, edge16-long or edge32-ring8" >&2; exit 2;;
 esac
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
 # the arm's options come last: they override these
