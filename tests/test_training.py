@@ -30,6 +30,7 @@ from svcode_core.training import (
     field_weights,
     generate_dataset,
     joint_loss,
+    seen_by_every_lens,
     split_frames,
     stage_loss,
     svcode_loss,
@@ -350,6 +351,37 @@ def test_field_weights_mark_the_benchmark_ring():
     assert set(np.unique(weights.numpy())) == {1.0, 2.0, 6.0}  # no edge pixel outside the ring
 
 
+def test_seen_by_every_lens_follows_the_sensor_padding():
+    """cm2-mini, checked from its geometry: a sub-view of 384 px at chief rays 144 px
+    apart on a 480 x 640 sensor padded by 96 px in rows and 16 in columns. The top lens
+    row's sub-view starts 96 px above the sensor, so object rows 0-95 of that lens fall
+    off it (and rows 288-383 of the bottom row's); likewise 16 px of columns."""
+    system = SystemConfig.preset("cm2-mini")
+    seen = seen_by_every_lens(system).numpy()
+    size = system.sub_view_size
+    pad_r, pad_c = system.padding
+    rows, cols = np.indices((size, size))
+    expected = ((rows >= pad_r) & (rows < size - pad_r)
+                & (cols >= pad_c) & (cols < size - pad_c))  # fmt: skip
+    np.testing.assert_array_equal(seen, expected)
+
+
+def test_partial_weight_multiplies_the_other_weights():
+    seen = torch.ones(64, 64, dtype=torch.bool)
+    seen[:10] = False
+    seen[:, 60:] = False
+    origins = torch.tensor([[0, 0], [5, 40], [30, 20]])
+    plain = field_weights(origins, 24, 64, edge=3.0, ring=2.0, strip=4)
+    weights = field_weights(origins, 24, 64, edge=3.0, ring=2.0, strip=4, partial=5.0,
+                            seen_by_all=seen)
+    for (r, c), crop, base in zip(origins.tolist(), weights[:, 0], plain[:, 0], strict=True):
+        lost = ~seen[r : r + 24, c : c + 24]
+        torch.testing.assert_close(crop, base * torch.where(lost, 5.0, 1.0), rtol=0, atol=0)
+    assert (weights[2] == plain[2]).all()  # a crop every lens sees
+    with pytest.raises(ValueError, match="seen_by_all"):
+        field_weights(origins, 24, 64, partial=2.0)
+
+
 def test_edge_weight_scales_the_squared_error_of_the_edge_only():
     target = torch.zeros(1, 1, 32, 32)
     weights = field_weights(torch.tensor([[0, 0]]), 32, 96, 5.0)
@@ -475,6 +507,12 @@ def test_edge_and_ring_weights_enter_the_training_loss(tiny_data, tmp_path):
                                 weights=weights)[0])
     assert trainer.train_step(batch)["loss"] == pytest.approx(expected, rel=1e-5)
     assert _trainer(tiny_data, tmp_path / "plain")._loss_weights(batch) is None
+    partial = _trainer(tiny_data, tmp_path / "partial", partial_weight=4.0)
+    seen = seen_by_every_lens(tiny_data.system)
+    expected = field_weights(batch["origin"], r.shape[-1], tiny_data.system.sub_view_size,
+                             partial=4.0, seen_by_all=seen)
+    torch.testing.assert_close(partial._loss_weights(batch), expected, rtol=0, atol=0)
+    assert (~seen).any()  # the tiny system's sub-view does lose pixels off the sensor
 
 
 def test_resume_continues_exactly(tiny_data, tmp_path, monkeypatch):

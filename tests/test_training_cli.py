@@ -44,14 +44,17 @@ def test_dataset_then_train(tiny_system, tiny_model_config, tmp_path, capsys):
     args = ["train", "--data", str(data), "--out", str(run), "--epochs", "1",
             "--model-config", str(model_file), "--ablation", "no-pe", "--batch-size", "2",
             "--patches-per-epoch", "2", "--val-patches", "2", "--device", "cpu",
-            "--mse-weight", "30", "--no-progress"]
+            "--mse-weight", "30", "--partial-weight", "3", "--no-progress"]
     assert main(args) == 0
     assert "validation reconstruction PSNR" in capsys.readouterr().out
     state = torch.load(run / "checkpoints" / "epoch-0001.pt", weights_only=True)
     assert json.loads(state["train_config"])["beta"] == 30.0
+    assert json.loads(state["train_config"])["partial_weight"] == 3.0
     assert main([*args, "--ssim-weight", "-1"]) == 2
     err = capsys.readouterr().err  # the option's name, not the field's (alpha)
     assert "error: --ssim-weight: must be >= 0, got -1.0" in err and "alpha" not in err
+    assert main([*args, "--partial-weight", "-2"]) == 2
+    assert "error: --partial-weight: must be >= 0" in capsys.readouterr().err
     model, system = load_model(run / "best.safetensors", tiny_system)
     assert model.model_config.positional_encoding is False
     assert main([*args, "--resume"]) == 0  # nothing left to do, but it loads

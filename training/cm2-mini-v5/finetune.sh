@@ -10,6 +10,10 @@
 #   edge16-long  4 more epochs of edge16's model (seed 13, the same weights): do they go on?
 #   edge32-ring8 4 more epochs of edge16's model (seed 13) with the strips weighted 32 and
 #             the outer ring 8: does the ring keep up when both weights rise?
+#   partial4  every pixel that some lens loses off the sensor weighted 4 (the rows within
+#             96 px of the top and bottom as well as the column strips, which with the
+#             edge weight come to 16, as in edge16): do those rows keep their level while
+#             the strips gain?
 # Resumable over sessions (../resume.sh).
 # Usage (from the repository root): bash training/cm2-mini-v5/finetune.sh ARM
 set -euo pipefail
@@ -22,7 +26,9 @@ case "$arm" in
   edge16-long) extra=(--edge-weight 16 --seed 13 --init "$here/edge16/best.safetensors");;
   edge32-ring8) extra=(--edge-weight 32 --ring-weight 8 --seed 13
                        --init "$here/edge16/best.safetensors");;
-  *) echo "finetune.sh: zeros, reflect, edge16, edge16-long or edge32-ring8" >&2; exit 2;;
+  partial4) extra=(--partial-weight 4);;
+  *) echo "finetune.sh: zeros, reflect, edge16, edge16-long, edge32-ring8 or partial4" >&2
+     exit 2;;
 esac
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
 # the arm's options come last: they override these

@@ -88,6 +88,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="weight of the squared error in the outer ring of the field "
                         f"(normalised radius above {RING_RADIUS}, the benchmark's ring: seen by "
                         "fewer lenses, so noisier; default 1, as elsewhere)")
+    parser.add_argument("--partial-weight", type=float, default=defaults.partial_weight,
+                        help="weight of the squared error on the pixels that some lens's "
+                        "image loses off the sensor (fewer readings determine them; "
+                        "multiplies the edge and ring weights; default 1, as elsewhere)")
     parser.add_argument("--photon-range", type=float, nargs=2, metavar=("LOW", "HIGH"),
                         default=defaults.photon_range,
                         help="scale each training sample's photon level by a factor drawn "
@@ -133,8 +137,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 _OPTION_OF_FIELD = {"alpha": "--ssim-weight", "beta": "--mse-weight"} | {
     field: "--" + field.replace("_", "-")
     for field in ("epochs", "batch_size", "lr", "min_lr_ratio", "warmup_steps", "grad_clip",
-                  "edge_weight", "ring_weight", "patches_per_epoch", "val_patches", "seed",
-                  "same_origin", "photon_range", "patch_size")
+                  "edge_weight", "ring_weight", "partial_weight", "patches_per_epoch",
+                  "val_patches", "seed", "same_origin", "photon_range", "patch_size")
 } | {"workers": "--loader-workers"}  # fmt: skip
 
 
@@ -187,7 +191,7 @@ def run(args: argparse.Namespace) -> int:
         epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
         min_lr_ratio=args.min_lr_ratio, warmup_steps=args.warmup_steps, grad_clip=args.grad_clip,
         alpha=args.ssim_weight, beta=args.mse_weight, edge_weight=args.edge_weight,
-        ring_weight=args.ring_weight,
+        ring_weight=args.ring_weight, partial_weight=args.partial_weight,
         patches_per_epoch=args.patches_per_epoch, val_patches=args.val_patches,
         seed=args.seed, workers=args.loader_workers, same_origin=args.same_origin,
         photon_range=tuple(args.photon_range), normalise_exposure=args.normalise_exposure,

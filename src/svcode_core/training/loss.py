@@ -3,7 +3,8 @@
 ``L = L_demix + L_recon`` with ``L_stage = α (1 − SSIM) + β MSE`` (α = β = 1 in the paper;
 the learned baselines have the reconstruction stage alone, :func:`joint_loss`). The MSE may
 weigh some pixels more than others (:func:`field_weights`: the sub-view's edge strips, which
-a patch-trained model sees least, and the outer ring, which it reconstructs worst). SSIM is
+a patch-trained model sees least, the outer ring, which it reconstructs worst, and the
+pixels that some lens loses off the sensor). SSIM is
 pytorch-msssim's Gaussian-window SSIM (window 11, σ 1.5, ``data_range = 1``), averaged over
 channels and batch. Everything is computed in float32, also when the network
 ran under bf16 autocast.
@@ -23,12 +24,13 @@ from collections.abc import Mapping
 import torch
 from pytorch_msssim import ssim
 
+from ..config import SystemConfig
 from ..evaluation.metrics import psnr_from_mse
 from ..evaluation.zones import EDGE_STRIP, RING_RADIUS
-from ..physics.geometry import normalized_coordinates
+from ..physics.geometry import normalized_coordinates, sensor_coverage
 
-__all__ = ["EDGE_STRIP", "field_weights", "joint_loss", "psnr_per_sample", "ssim_per_sample",
-           "stage_loss", "svcode_loss"]
+__all__ = ["EDGE_STRIP", "field_weights", "joint_loss", "psnr_per_sample", "seen_by_every_lens",
+           "ssim_per_sample", "stage_loss", "svcode_loss"]
 
 #: Smallest MSE used by :func:`psnr_per_sample` (caps the PSNR of a perfect patch at 100 dB).
 MIN_MSE = 1e-10
@@ -105,12 +107,14 @@ def joint_loss(
 
 def field_weights(
     origins: torch.Tensor, size: int, sub_view_size: int, edge: float = 1.0,
-    ring: float = 1.0, strip: int = EDGE_STRIP,
+    ring: float = 1.0, strip: int = EDGE_STRIP, partial: float = 1.0,
+    seen_by_all: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Loss weights of square crops of a sub-view: ``edge`` on the pixels within ``strip``
     pixels of the sub-view's edge, ``ring`` on the outer ring (normalised field radius
-    above :data:`~svcode_core.evaluation.zones.RING_RADIUS`, the benchmark's zone), their
-    product where both hold, 1 elsewhere.
+    above :data:`~svcode_core.evaluation.zones.RING_RADIUS`, the benchmark's zone),
+    ``partial`` on the pixels that not every lens sees (``seen_by_all`` false), their
+    product where several hold, 1 elsewhere.
 
     Parameters
     ----------
@@ -124,6 +128,11 @@ def field_weights(
         Weights of the edge strips and of the outer ring.
     strip : int
         Width of the edge strips in pixels.
+    partial : float
+        Weight of the pixels that some lens's image loses off the sensor.
+    seen_by_all : torch.Tensor or None
+        ``(S, S)`` bool, true where every lens sees the pixel
+        (:func:`seen_by_every_lens`); needed when ``partial`` is not 1.
 
     Returns
     -------
@@ -138,6 +147,12 @@ def field_weights(
     >>> w = field_weights(torch.tensor([[0, 0]]), size=6, sub_view_size=6, ring=2.0)
     >>> w[0, 0, :3].tolist()  # the top half of a whole 6-px sub-view: its corners are ring
     [[2.0, 2.0, 2.0, 2.0, 2.0, 2.0], [2.0, 2.0, 1.0, 1.0, 2.0, 2.0], [2.0, 1.0, 1.0, 1.0, 1.0, 2.0]]
+    >>> seen = torch.ones(6, 6, dtype=torch.bool)
+    >>> seen[:2] = False  # the top two rows: some lens loses them off the sensor
+    >>> w = field_weights(torch.tensor([[1, 0]]), size=3, sub_view_size=6, partial=3.0,
+    ...                   seen_by_all=seen)
+    >>> w[0, 0, :, 0].tolist()  # rows 1-3 of the sub-view
+    [3.0, 1.0, 1.0]
     """
     pixels = origins.to(torch.int64)[:, :, None] + torch.arange(size)  # (B, 2, size)
     near = (pixels < strip) | (pixels >= sub_view_size - strip)
@@ -147,7 +162,26 @@ def field_weights(
                                   dtype=torch.float64)
     u = axis[pixels - first]  # (B, 2, size)
     in_ring = (torch.hypot(u[:, 0, :, None], u[:, 1, None, :]) > RING_RADIUS).float()
-    return ((1.0 + (edge - 1.0) * at_edge) * (1.0 + (ring - 1.0) * in_ring))[:, None]
+    weights = (1.0 + (edge - 1.0) * at_edge) * (1.0 + (ring - 1.0) * in_ring)
+    if partial != 1.0:
+        if seen_by_all is None:
+            raise ValueError("field_weights: a partial weight needs seen_by_all")
+        rows, cols = pixels[:, 0, :, None], pixels[:, 1, None, :]
+        weights = weights * (1.0 + (partial - 1.0) * (~seen_by_all[rows, cols]).float())
+    return weights[:, None]
+
+
+def seen_by_every_lens(system: SystemConfig) -> torch.Tensor:
+    """``(S, S)`` bool: true where every lens's image of the sub-view pixel falls on the
+    sensor.
+
+    Examples
+    --------
+    >>> seen = seen_by_every_lens(SystemConfig.preset("cm2-mini"))
+    >>> seen[:96].any().item(), seen[96:288, 16:368].all().item(), seen[:, :16].any().item()
+    (False, True, False)
+    """
+    return sensor_coverage(system).bool().all(0)
 
 
 def svcode_loss(

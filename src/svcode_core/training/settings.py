@@ -66,6 +66,11 @@ class TrainConfig:
         :data:`~svcode_core.evaluation.zones.RING_RADIUS`; 1: the same as elsewhere). The
         ring is seen by fewer lenses through dimmer, more aberrated PSFs, so noise costs it
         more than the centre.
+    partial_weight : float
+        Weight of the squared error on the pixels that some lens's image loses off the
+        sensor (:func:`~svcode_core.training.loss.seen_by_every_lens`; at ``cm2-mini`` the
+        rows within 96 px of the top and bottom and the 16-px column strips; 1: the same as
+        elsewhere). Fewer readings determine them.
     seed : int
         Seeds the initialisation, the patch draws and the noise.
     workers : int
@@ -115,6 +120,7 @@ class TrainConfig:
     beta: float = 1.0
     edge_weight: float = 1.0
     ring_weight: float = 1.0
+    partial_weight: float = 1.0
     seed: int = 0
     workers: int = 0
     same_origin: int = 1
@@ -140,7 +146,7 @@ class TrainConfig:
             check_int(name, getattr(self, name), 0)
         if not 0 <= check_number("min_lr_ratio", self.min_lr_ratio) <= 1:
             raise ConfigError(f"min_lr_ratio: must lie in [0, 1], got {self.min_lr_ratio!r}")
-        for name in ("alpha", "beta", "edge_weight", "ring_weight"):
+        for name in ("alpha", "beta", "edge_weight", "ring_weight", "partial_weight"):
             check_number(name, getattr(self, name), 0)
         if self.precision not in TRAIN_PRECISIONS:
             raise ConfigError(f"precision: must be one of {', '.join(TRAIN_PRECISIONS)}, "

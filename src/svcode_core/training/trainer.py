@@ -61,7 +61,7 @@ from ..network import ModelConfig, SVCoDe, with_lens_context
 from ..network.compiled import compile_model
 from .dataset import TrainingData
 from .distributed import DistInfo, all_reduce_sum, barrier
-from .loss import field_weights, joint_loss, psnr_per_sample, ssim_per_sample
+from .loss import field_weights, joint_loss, psnr_per_sample, seen_by_every_lens, ssim_per_sample
 from .sampler import EpochSampler, derive_seed
 from .settings import TrainConfig
 from .tasks import Stages, training_task
@@ -184,6 +184,9 @@ class Trainer:
         init_weights: str | Path | None = None,
     ) -> None:
         self.data, self.system = data, data.system
+        #: where every lens sees the sub-view (for the partial weight; None when it is 1)
+        self.seen_by_all = (seen_by_every_lens(self.system)
+                            if config.partial_weight != 1.0 else None)
         self.config = config.validate()
         self.model_config = model_config.validate()
         self.out = Path(out_dir)
@@ -272,12 +275,14 @@ class Trainer:
         """Per-pixel weights of the squared error (:func:`~.loss.field_weights`), or
         ``None`` when every pixel weighs the same. Samples without an origin are whole
         sub-views."""
-        if self.config.edge_weight == 1.0 and self.config.ring_weight == 1.0:
+        config = self.config
+        if config.edge_weight == config.ring_weight == config.partial_weight == 1.0:
             return None
         target = batch["object"]
         origins = batch.get("origin", torch.zeros(len(target), 2, dtype=torch.int64))
         weights = field_weights(origins, target.shape[-1], self.system.sub_view_size,
-                                self.config.edge_weight, self.config.ring_weight)
+                                config.edge_weight, config.ring_weight,
+                                partial=config.partial_weight, seen_by_all=self.seen_by_all)
         return weights.to(target.device)
 
     @property
