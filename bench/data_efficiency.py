@@ -12,7 +12,7 @@ exposure level and scaled back), PSNR and SSIM against the object per frame, ave
 
 SV-CoDe's points are the bundled model's first training run at epochs 10, 15 and 19
 (their files are read from the git history, where that run's resume states were kept)
-and the bundled model itself (33 epochs of 3200 patches). A baseline's points are its
+and the bundled model itself (37 epochs of 3200 patches). A baseline's points are its
 own validation log (``training/baselines/ARCH/log.csv``, the same frames and noise,
 exposure gain as its trainer measured it: ``training/baselines/README.md``), and its final
 file when given with ``--learned``, scored here as the others are.
@@ -51,7 +51,7 @@ FRAME_PIXELS = 384**2
 RUN = "training/cm2-mini-v3/context-scratch/best.safetensors"
 #: the bundled model's first run: (commit holding its best file, epochs trained)
 LINEAGE = (("b580b66", 10), ("66fff74", 15), ("345a14e", 19))
-BUNDLED_EPOCHS = 20 + 6 + 7  # first run, then the two fine-tunings up to the kept epoch
+BUNDLED_EPOCHS = 20 + 6 + 7 + 4  # first run, then the three fine-tunings up to the kept epoch
 
 
 def validation_frames(data: TrainingData) -> list[tuple[np.ndarray, torch.Tensor]]:

@@ -47,8 +47,8 @@
 set -euo pipefail
 arm="$1"
 here="$(cd "$(dirname "$0")" && pwd)"
-# context-ring4's best epoch: the bundled cm2-mini model (the same weights)
-ring4_best="$here/../../src/svcode_core/weights/cm2-mini.safetensors"
+# context-ring4's best epoch, the bundled cm2-mini model before ../cm2-mini-v5's edge16
+ring4_best="$here/context-ring4/best.safetensors"
 v2="$here/../cm2-mini-v2"
 base="$v2/run/best.safetensors"
 # mse-long3 and edge differ only in the edge weight

@@ -10,7 +10,7 @@
 set -euo pipefail
 arm="$1"
 here="$(cd "$(dirname "$0")" && pwd)"
-init="$here/../../src/svcode_core/weights/cm2-mini.safetensors"  # v3's context-ring4, bundled
+init="$here/../cm2-mini-v3/context-ring4/best.safetensors"  # bundled at the time
 extra=()
 case "$arm" in
   exposure) ;;

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
-# Four more epochs of the bundled cm2-mini model (the recipe of its last fine-tuning,
-# context-ring4: lr 2e-4, MSE weight 100, edge and ring weights 4, seed 12), one arm per
-# question:
+# Four more epochs of v3's context-ring4 model (bundled before edge16; the recipe of its
+# last fine-tuning: lr 2e-4, MSE weight 100, edge and ring weights 4, seed 12), one arm
+# per question:
 #   zeros     as the model is (zero padding): the control
 #   reflect   every padded convolution of both stages mirrors (--padding reflect): does
 #             mirrored padding win the border back for the whole model?
@@ -14,18 +14,19 @@
 #             96 px of the top and bottom as well as the column strips, which with the
 #             edge weight come to 16, as in edge16): do those rows keep their level while
 #             the strips gain?
+# edge16's best epoch is the bundled cm2-mini model (the same weights).
 # Resumable over sessions (../resume.sh).
 # Usage (from the repository root): bash training/cm2-mini-v5/finetune.sh ARM
 set -euo pipefail
 arm="$1"
 here="$(cd "$(dirname "$0")" && pwd)"
+edge16="$here/../../src/svcode_core/weights/cm2-mini.safetensors"
 case "$arm" in
   zeros) extra=();;
   reflect) extra=(--padding reflect);;
   edge16) extra=(--edge-weight 16);;
-  edge16-long) extra=(--edge-weight 16 --seed 13 --init "$here/edge16/best.safetensors");;
-  edge32-ring8) extra=(--edge-weight 32 --ring-weight 8 --seed 13
-                       --init "$here/edge16/best.safetensors");;
+  edge16-long) extra=(--edge-weight 16 --seed 13 --init "$edge16");;
+  edge32-ring8) extra=(--edge-weight 32 --ring-weight 8 --seed 13 --init "$edge16");;
   partial4) extra=(--partial-weight 4);;
   *) echo "finetune.sh: zeros, reflect, edge16, edge16-long, edge32-ring8 or partial4" >&2
      exit 2;;
@@ -33,7 +34,7 @@ esac
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
 # the arm's options come last: they override these
 bash "$here/../resume.sh" "runs/v5-$arm" "$here/$arm" \
-  --init "$here/../../src/svcode_core/weights/cm2-mini.safetensors" \
+  --init "$here/../cm2-mini-v3/context-ring4/best.safetensors" \
   --batch-size 8 --same-origin 8 --patches-per-epoch 3200 --val-patches 128 \
   --mse-weight 100 --edge-weight 4 --ring-weight 4 --epochs 4 --lr 2e-4 \
   --warmup-steps 100 --seed 12 "${extra[@]}"
