@@ -4,10 +4,9 @@
 the learned baselines have the reconstruction stage alone, :func:`joint_loss`). The MSE may
 weigh some pixels more than others (:func:`field_weights`: the sub-view's edge strips, which
 a patch-trained model sees least, the outer ring, which it reconstructs worst, and the
-pixels that some lens loses off the sensor). SSIM is
-pytorch-msssim's Gaussian-window SSIM (window 11, σ 1.5, ``data_range = 1``), averaged over
-channels and batch. Everything is computed in float32, also when the network
-ran under bf16 autocast.
+pixels that some lens loses off the sensor). SSIM is pytorch-msssim's Gaussian-window SSIM
+(window 11, σ 1.5, ``data_range = 1``), averaged over channels and batch. Everything is
+computed in float32, also when the network ran under bf16 autocast.
 
 Training SSIM and report SSIM
     The loss needs a differentiable SSIM on batches of tensors, hence the Gaussian-window
