@@ -184,10 +184,10 @@ class Trainer:
         init_weights: str | Path | None = None,
     ) -> None:
         self.data, self.system = data, data.system
+        self.config = config.validate()
         #: where every lens sees the sub-view (for the partial weight; None when it is 1)
         self.seen_by_all = (seen_by_every_lens(self.system)
-                            if config.partial_weight != 1.0 else None)
-        self.config = config.validate()
+                            if self.config.partial_weight != 1.0 else None)
         self.model_config = model_config.validate()
         self.out = Path(out_dir)
         self.device = torch.device(device)
