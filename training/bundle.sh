@@ -1,13 +1,15 @@
 #!/usr/bin/env bash
-# Bundle a trained cm2-mini model: copy its weights into the package, then refresh every
-# result that quotes the bundled model: its rows of the held-out benchmark
-# (bench/results/regimes.*, the other methods' rows kept), the network's stability report,
-# the README screenshots, and print the demo's PSNR and the profile and seam tests' outcome
+# Bundle a trained cm2-mini model: copy its weights into the package, record its bf16
+# check, then refresh every result that quotes the bundled model, the other methods' rows
+# kept: the held-out benchmark (bench/results/regimes.*), the same-content ring gap with
+# its tile and refinement rows, the exposure sweeps, the bar target, beads, ghosts, the
+# network's stability report, the data-efficiency point, the README screenshots; and print
+# the demo's PSNR and the profile and seam tests' outcome
 # (the seam test's expected failure names a measured agreement: update its reason in
-# tests/test_tile_plan.py by hand, with the model card, the README's tables and
-# docs/regimes.md; a profile test that fails stops the bundle: it ships only when the
+# tests/test_tile_plan.py by hand, with the model card, the README's tables,
+# docs/regimes.md and BUNDLED_EPOCHS in bench/data_efficiency.py, first); a profile test that fails stops the bundle: it ships only when the
 # failure is measured and understood, as a strict expected failure in tests/test_profiles.py
-# that the model card explains). About 15 minutes on two cores; pause any training first.
+# that the model card explains). About an hour on two cores; pause any training first.
 # Usage (from the repository root): bash training/bundle.sh WEIGHTS
 set -euo pipefail
 weights="$1"
@@ -28,7 +30,16 @@ if old != new:
     report.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
 PY
 cp "$weights" "$bundled"
+python bench/precision.py --record
 svcode bench --methods svcode --merge --out bench/results
+for knob in "" "--tile 96" "--refine-periphery 10" "--refine-periphery 30"; do
+  python bench/ring_gap.py --no-admm --merge $knob
+done
+python bench/exposure.py --no-admm --merge
+python bench/resolution.py --refine-periphery 50
+python bench/beads.py --no-admm --merge
+python bench/ghosts.py
+python bench/data_efficiency.py --merge  # the v2 data: training/resume.sh makes it
 python bench/stability.py
 SVCODE_UPDATE_SCREENSHOT=1 xvfb-run -a python -m pytest -q tests/test_napari_widgets.py \
   -k screenshot
