@@ -9,7 +9,7 @@
 # exposure level. Resumable; run folder runs/v5-whole, kept state ./whole.
 # GRID=2 trains the same on a grid twice coarser instead (whole-f2.json: pixel_unshuffle 2,
 # 32 channels at the first level, at most 64: 119-px reach, about the same cost a step);
-# run folder runs/v5-whole-f2, kept state ./whole-f2.
+# run folder runs/v5-whole-f2 (its log and held-out report in ./whole-f2; no state kept).
 # Usage (from the repository root): [GRID=2] bash training/cm2-mini-v5/whole.sh [svcode train options]
 set -euo pipefail
 here="$(cd "$(dirname "$0")" && pwd)"
