@@ -75,8 +75,10 @@ def scene_row(reconstruct: Reconstruct, simulator: Simulator, index: int,
                for name, shift in zip(MOVES, shifts, strict=True)}
     columns = {shifts[1]: moved[shifts[1]]}
     strips = edge_columns(len(truth), edge_strip_width(simulator.system))
-    by_move["same_gap_column_strips"] = same_content_zones(truth, estimate, columns,
-                                                           ring=strips).gap
+    in_strips = same_content_zones(truth, estimate, columns, ring=strips)
+    by_move["same_gap_column_strips"] = in_strips.gap
+    by_move["strips_content_centre"] = in_strips.centre  # the gap's two ends, in dB
+    by_move["strips_content_strips"] = in_strips.ring
     by_move["same_gap_columns_inside"] = same_content_zones(truth, estimate, columns,
                                                             ring=~strips).gap
     return {"psnr": quality["psnr"], "zone_centre": quality["psnr_centre"],
@@ -125,12 +127,17 @@ def write_markdown(report: dict, path: Path) -> None:
               "(which one lens row loses off the sensor), along the columns in the left and "
               "right edges, along both in the corners. The columns move split: the "
               f"{report['strip']}-px edge strips (which three of the nine lenses lose off the "
-              "sensor) and the ring's columns inside them.", "",
+              "sensor) and the ring's columns inside them; the last column gives the strips' "
+              "gap's two ends, the PSNR of the content that lands in the strips where it sat "
+              "in the centre and in the strips (– where the report predates it).", "",
               "| regime | method | " + " | ".join((*MOVES, *COLUMN_PARTS)).replace("_", " ")
-              + " |", "|---" * (2 + len(MOVES) + len(COLUMN_PARTS)) + "|"]
+              + " | strips' content: centre → strips |",
+              "|---" * (3 + len(MOVES) + len(COLUMN_PARTS)) + "|"]
     for row in report["rows"]:
         gaps = " | ".join(f"{row[f'same_gap_{move}']:.2f}" for move in (*MOVES, *COLUMN_PARTS))
-        lines.append(f"| {row['regime']} | {row['method']} | {gaps} |")
+        ends = (f"{row['strips_content_centre']:.2f} → {row['strips_content_strips']:.2f}"
+                if "strips_content_centre" in row else "–")
+        lines.append(f"| {row['regime']} | {row['method']} | {gaps} | {ends} |")
     scenes = list(report["rows"][0]["per_scene"]) if report["rows"] else []
     lines += ["", "## Same-content gap per scene (dB)", "",
               "| regime | method | " + " | ".join(scenes) + " |", "|---" * (2 + len(scenes)) + "|"]

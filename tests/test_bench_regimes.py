@@ -4,6 +4,7 @@ import json
 from dataclasses import replace
 
 import numpy as np
+import pytest
 import torch
 
 from svcode_bench import regimes
@@ -168,6 +169,9 @@ def test_bench_adds_the_ring_gap_and_the_exposure_sweeps(tiny_system, tmp_path, 
     gap = json.loads((out / "ring_gap.json").read_text())
     assert gap["system"] == "tiny" and {r["regime"] for r in gap["rows"]} == {"realistic"}
     assert all(r["method"].startswith("LSV-ADMM") for r in gap["rows"])
+    for row in gap["rows"]:  # the strips' gap is the difference of its two recorded ends
+        ends = row["strips_content_centre"] - row["strips_content_strips"]
+        assert ends == pytest.approx(row["same_gap_column_strips"], abs=1e-9)
     sweep = json.loads((out / "exposure.json").read_text())
     scales = {r["scale"]: r["psnr"] for r in sweep["rows"] if r["sweep"] == "exposure"}
     assert set(scales) == {1.0, 0.05} and abs(scales[1.0] - scales[0.05]) < 0.01
