@@ -74,10 +74,11 @@ def _shown(path: Path) -> str:
 
 
 def admm_method(system: SystemConfig, iterations: int) -> tuple[str, Reconstruct]:
-    """LSV-ADMM at the benchmark's ``K``, a fixed number of iterations."""
+    """LSV-ADMM at the benchmark's ``K``, a fixed number of iterations, λ from each frame
+    (the method's default)."""
     admm = build_reconstructor("admm", system, rank=ADMM_RANK, iterations=iterations,
-                               tolerance=0.0)
-    return (f"LSV-ADMM K={ADMM_RANK}, {iterations} it",
+                               tolerance=0.0, tv_weight="auto")
+    return (f"LSV-ADMM K={ADMM_RANK}, {iterations} it, λ auto",
             lambda raw: admm.reconstruct(raw).reconstruction)
 
 
