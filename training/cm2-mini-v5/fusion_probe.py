@@ -90,14 +90,31 @@ def psnr(a: np.ndarray, b: np.ndarray, span: float) -> float:
     return float(psnr_from_mse(np.mean((a - b) ** 2), span))
 
 
-def evaluate(net: ReconNet, arm: str, data: TrainingData, frames: list[int],
-             cover: torch.Tensor, gains: PatchDataset) -> dict[str, float]:  # fmt: skip
-    """Mean PSNR over whole validation sub-views: the column strips, the row strips (the
-    same border along the top and bottom), the centre (the middle half), all."""
-    size = data.system.sub_view_size
+def border_scores(out: np.ndarray, truth: np.ndarray) -> tuple[float, float, float, float]:
+    """PSNR of one whole sub-view against its truth's range: the column strips, the row
+    strips (the same border along the top and bottom), the centre (the middle half), all."""
+    size = len(truth)
     centre = slice(size // 4, 3 * size // 4)
     in_strips = edge_columns(size, EDGE_STRIP)
     in_rows = in_strips.T & ~in_strips
+    span = float(truth.max() - truth.min()) or 1.0
+    return (psnr(out[in_strips], truth[in_strips], span),
+            psnr(out[in_rows], truth[in_rows], span),
+            psnr(out[centre, centre], truth[centre, centre], span),
+            psnr(out, truth, span))  # fmt: skip
+
+
+def summary(scores: list[tuple[float, float, float, float]]) -> dict[str, float]:
+    """The mean of :func:`border_scores` over sub-views, with the centre's lead on the strips."""
+    strips, rows, middle, whole = np.mean(scores, axis=0)
+    return {"strips": strips, "rows": rows, "centre": middle, "all": whole,
+            "gap": middle - strips}
+
+
+def evaluate(net: ReconNet, arm: str, data: TrainingData, frames: list[int],
+             cover: torch.Tensor, gains: PatchDataset) -> dict[str, float]:  # fmt: skip
+    """:func:`summary` of the validation ``frames``' whole sub-views."""
+    size = data.system.sub_view_size
     scores = []
     net.eval()
     with torch.no_grad():
@@ -106,16 +123,9 @@ def evaluate(net: ReconNet, arm: str, data: TrainingData, frames: list[int],
             demixed = data.read(data.demixed[frame])[None] * gain
             truth = data.read(data.objects[frame]).numpy() * gain
             out = run(net, inputs(arm, demixed, cover[None]), torch.tensor([[0, 0]]), size)
-            out = out[0, 0].clamp_min(0).numpy()
-            span = float(truth.max() - truth.min()) or 1.0
-            scores.append((psnr(out[in_strips], truth[in_strips], span),
-                           psnr(out[in_rows], truth[in_rows], span),
-                           psnr(out[centre, centre], truth[centre, centre], span),
-                           psnr(out, truth, span)))  # fmt: skip
+            scores.append(border_scores(out[0, 0].clamp_min(0).numpy(), truth))
     net.train()
-    strips, rows, middle, whole = np.mean(scores, axis=0)
-    return {"strips": strips, "rows": rows, "centre": middle, "all": whole,
-            "gap": middle - strips}
+    return summary(scores)
 
 
 def main() -> None:

@@ -29,15 +29,15 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from fusion_probe import border_scores, summary  # this folder's probe: the same scores
 from torch import nn
 
-from svcode_core.evaluation.metrics import edge_columns, psnr_from_mse
 from svcode_core.network import ModelConfig
 from svcode_core.network.models import ReconNet
 from svcode_core.physics.cm2 import CM2Operator
 from svcode_core.physics.geometry import extract_sub_views, pad_sensor_frame
 from svcode_core.training.dataset import TrainingData
-from svcode_core.training.loss import EDGE_STRIP, stage_loss
+from svcode_core.training.loss import stage_loss
 
 PATCH, STRIDE, BATCH = 96, 48, 8
 
@@ -96,26 +96,13 @@ def main() -> None:
         return net.run(inputs, masks)[..., m : inputs.shape[-2] - m, m : inputs.shape[-1] - m]
 
     def evaluate() -> dict[str, float]:
-        centre = slice(size // 4, 3 * size // 4)
-        strips = edge_columns(size, EDGE_STRIP)
-        rows = strips.T & ~strips
-        scores = []
         net.eval()
         with torch.no_grad():
-            for f in val:
-                out = run(views[f][None], torch.tensor([[0, 0]]))[0, 0].clamp_min(0).numpy()
-                truth = objects[f].numpy()
-                span = float(truth.max() - truth.min()) or 1.0
-
-                def psnr(where, truth=truth, out=out, span=span):
-                    return float(psnr_from_mse(np.mean((out[where] - truth[where]) ** 2), span))
-
-                scores.append((psnr(strips), psnr(rows), psnr((centre, centre)),
-                               psnr(np.ones_like(strips))))  # fmt: skip
+            outs = [run(views[f][None], torch.tensor([[0, 0]]))[0, 0].clamp_min(0) for f in val]
+            scores = [border_scores(out.numpy(), objects[f].numpy())
+                      for out, f in zip(outs, val, strict=True)]  # fmt: skip
         net.train()
-        strip, row, middle, whole = np.mean(scores, axis=0)
-        return {"strips": strip, "rows": row, "centre": middle, "all": whole,
-                "gap": middle - strip}
+        return summary(scores)
 
     args.out.mkdir(parents=True, exist_ok=True)
     log, cpu = [], 0.0
