@@ -3,7 +3,12 @@ import pytest
 import torch
 
 from svcode_core.physics.cm2 import CM2Operator, simulation_cost
-from svcode_core.physics.geometry import extract_sub_views, sub_view_origins
+from svcode_core.physics.geometry import (
+    crop_to_sensor,
+    extract_sub_views,
+    place_sub_views,
+    sub_view_origins,
+)
 
 
 def gaussian_psfs(system, widths=(0.8, 2.0)) -> np.ndarray:
@@ -141,3 +146,24 @@ def test_simulation_cost_names_the_rank_and_grows_with_the_field(tiny_system):
     assert small.memory > 0 and small.seconds > 0
     double = tiny_system.replace(sub_view_size=2 * tiny_system.sub_view_size)
     assert simulation_cost(double).memory > small.memory
+
+
+def test_lens_images_past_the_window(tiny_system):
+    """Run on past the window by the whole margin, the nine lens images placed back give
+    the measurement exactly (nothing of a lens's light on the sensor is left out); their
+    middle is the ordinary targets; past the window they hold the border's light."""
+    op = CM2Operator.from_psfs(tiny_system, gaussian_psfs(tiny_system), dtype=torch.float64)
+    size, m = tiny_system.sub_view_size, op.margin
+    x = torch.rand(size, size, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    frame, wide = op.measure_with_targets(x, past=m)
+    assert wide.shape == (9, size + 2 * m, size + 2 * m)
+    placed = crop_to_sensor(place_sub_views(wide, tiny_system, m), tiny_system)
+    torch.testing.assert_close(placed, frame, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(wide[:, m:-m, m:-m], op.lens_images(x), rtol=0, atol=0)
+    assert wide[4, :, :m].sum() > 0  # the centre lens's spill past its left edge
+    cut = m - m // 2
+    torch.testing.assert_close(op.lens_images(x, past=m // 2), wide[:, cut:-cut, cut:-cut],
+                               rtol=0, atol=0)  # fmt: skip
+    for bad in (-1, m + 1, 1.5, True):
+        with pytest.raises(ValueError, match="past must be an integer"):
+            op.lens_images(x, past=bad)

@@ -35,7 +35,6 @@ from torch import nn
 from svcode_core.network import ModelConfig
 from svcode_core.network.models import ReconNet
 from svcode_core.physics.cm2 import CM2Operator
-from svcode_core.physics.geometry import extract_sub_views, pad_sensor_frame
 from svcode_core.training.dataset import TrainingData
 from svcode_core.training.loss import stage_loss
 
@@ -44,19 +43,17 @@ PATCH, STRIDE, BATCH = 96, 48, 8
 
 def lens_views(operator: CM2Operator, arm: str):
     """``object (S, S)`` → its nine lens views on the sub-view grid enlarged by the
-    operator's margin ``(9, S + 2m, S + 2m)``: zero off the sensor, and for ``window``
-    zero outside the sub-view window too."""
+    operator's margin ``m`` (:meth:`CM2Operator.lens_images` with ``past=m``): zero off the
+    sensor, and for ``window`` zero outside the sub-view window too."""
     m, size = operator.margin, operator.system.sub_view_size
-    sensor = torch.ones(operator.system.sensor_shape, dtype=operator.lenses.dtype)
-    keep = extract_sub_views(pad_sensor_frame(sensor, operator.system), operator.system, m)
+    keep = torch.ones(size + 2 * m, size + 2 * m)
     if arm == "window":
-        inner = torch.zeros_like(keep)
-        inner[..., m : m + size, m : m + size] = 1
-        keep = keep * inner
+        keep = torch.zeros_like(keep)
+        keep[m : m + size, m : m + size] = 1
 
     def views(obj: torch.Tensor) -> torch.Tensor:
         with torch.no_grad():
-            return operator.lens_blur(obj) * keep
+            return operator.lens_images(obj, past=m) * keep
 
     return views
 

@@ -192,26 +192,38 @@ class CM2Operator:
         """Noiseless raw sensor frame(s) ``(..., *sensor_shape)`` of object ``x``."""
         return crop_to_sensor(self.forward(x), self.system)
 
-    def lens_images(self, x: torch.Tensor) -> torch.Tensor:
+    def lens_images(self, x: torch.Tensor, past: int = 0) -> torch.Tensor:
         """The demixing targets: what each lens alone puts inside its own sub-view.
 
         Lens ``ℓ``'s noiseless image, cut to sub-view ``ℓ`` and truncated by the sensor
         like the measurement, shape ``(..., 9, S, S)``. Placing these nine images back
         reproduces the measurement inside each lens's own sub-view, minus the crosstalk
-        of the other lenses.
+        of the other lenses. With ``past`` > 0 (at most :attr:`margin`) each image runs on
+        ``past`` px beyond its sub-view on every side, as far as the sensor holds it:
+        ``(..., 9, S + 2·past, S + 2·past)``, the light of the border's points that a
+        sub-view's window cuts off.
         """
-        return self._targets_of(self.lens_blur(x))
+        return self._targets_of(self.lens_blur(x), past)
 
-    def measure_with_targets(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def measure_with_targets(
+        self, x: torch.Tensor, past: int = 0
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """:meth:`measure` and :meth:`lens_images` of ``x`` from one pass of the lens blur."""
         blur = self.lens_blur(x)
-        return crop_to_sensor(self._frame_of(blur), self.system), self._targets_of(blur)
+        return crop_to_sensor(self._frame_of(blur), self.system), self._targets_of(blur, past)
 
     def _frame_of(self, blur: torch.Tensor) -> torch.Tensor:
         return place_sub_views(blur, self.system, self.margin) * self._sensor_mask
 
-    def _targets_of(self, blur: torch.Tensor) -> torch.Tensor:
-        return self._shrink(blur) * self._own_view_mask
+    def _targets_of(self, blur: torch.Tensor, past: int = 0) -> torch.Tensor:
+        if past == 0:
+            return self._shrink(blur) * self._own_view_mask
+        if isinstance(past, bool) or not isinstance(past, int) or not 0 < past <= self.margin:
+            raise ValueError(f"past must be an integer from 0 to the margin {self.margin}, "
+                             f"got {past!r}")  # fmt: skip
+        cut = self.margin - past
+        on_sensor = extract_sub_views(self._sensor_mask, self.system, past)
+        return blur[..., cut : blur.shape[-2] - cut, cut : blur.shape[-1] - cut] * on_sensor
 
 
 @dataclass(frozen=True)
