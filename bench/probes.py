@@ -74,12 +74,9 @@ def _shown(path: Path) -> str:
 
 
 def admm_method(system: SystemConfig, iterations: int) -> tuple[str, Reconstruct]:
-    """LSV-ADMM at the benchmark's ``K``, a fixed number of iterations, λ from each frame
-    (the method's default)."""
-    admm = build_reconstructor("admm", system, rank=ADMM_RANK, iterations=iterations,
-                               tolerance=0.0, tv_weight="auto")
-    return (f"LSV-ADMM K={ADMM_RANK}, {iterations} it, λ auto",
-            lambda raw: admm.reconstruct(raw).reconstruction)
+    """:func:`admm_auto` at ``iterations``, as a function of the raw frame."""
+    label, admm = admm_auto(system, iterations)
+    return label, lambda raw: admm.reconstruct(raw).reconstruction
 
 
 def admm_iterations(system: SystemConfig) -> int:
@@ -88,10 +85,11 @@ def admm_iterations(system: SystemConfig) -> int:
     return max(plan_for(system).admm_checkpoints)
 
 
-def admm_auto(system: SystemConfig) -> tuple[str, BaseReconstructor]:
-    """LSV-ADMM as the probes run it, with its label: ``K`` = 3, :func:`admm_iterations`,
-    λ from each frame, no early stop."""
-    iterations = admm_iterations(system)
+def admm_auto(system: SystemConfig, iterations: int | None = None
+              ) -> tuple[str, BaseReconstructor]:  # fmt: skip
+    """LSV-ADMM as the probes run it, with its label: ``K`` = 3, ``iterations`` (default
+    :func:`admm_iterations`), λ from each frame (the method's default), no early stop."""
+    iterations = iterations or admm_iterations(system)
     return (f"LSV-ADMM K={ADMM_RANK}, {iterations} it, λ auto",
             build_reconstructor("admm", system, rank=ADMM_RANK, iterations=iterations,
                                 tolerance=0.0, tv_weight="auto"))

@@ -217,12 +217,13 @@ class CM2Operator:
 
     def _targets_of(self, blur: torch.Tensor, past: int = 0) -> torch.Tensor:
         if past == 0:
-            return self._shrink(blur) * self._own_view_mask
-        if isinstance(past, bool) or not isinstance(past, int) or not 0 < past <= self.margin:
+            on_sensor = self._own_view_mask
+        elif isinstance(past, bool) or not isinstance(past, int) or not 0 < past <= self.margin:
             raise ValueError(f"past must be an integer from 0 to the margin {self.margin}, "
                              f"got {past!r}")  # fmt: skip
+        else:
+            on_sensor = sensor_coverage(self.system, blur.dtype, blur.device, margin=past)
         cut = self.margin - past
-        on_sensor = extract_sub_views(self._sensor_mask, self.system, past)
         return blur[..., cut : blur.shape[-2] - cut, cut : blur.shape[-1] - cut] * on_sensor
 
 

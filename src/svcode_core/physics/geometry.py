@@ -356,14 +356,19 @@ def pad_sensor_frame(sensor: torch.Tensor, config: SystemConfig) -> torch.Tensor
 
 
 def sensor_coverage(
-    config: SystemConfig, dtype: torch.dtype = torch.float32, device: torch.device | None = None
+    config: SystemConfig,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | None = None,
+    margin: int = 0,
 ) -> torch.Tensor:
-    """Which pixels of each sub-view the sensor reads: 1 on the sensor, 0 in the padding.
+    """Which pixels of each sub-view the sensor reads: 1 on the sensor, 0 in the padding
+    (and, with ``margin``, beyond the padded frame).
 
     Returns
     -------
     torch.Tensor
-        Shape ``(9, S, S)``.
+        Shape ``(9, S + 2·margin, S + 2·margin)``: each sub-view enlarged by ``margin`` on
+        every side, as :func:`extract_sub_views` cuts it.
 
     Examples
     --------
@@ -371,6 +376,8 @@ def sensor_coverage(
     >>> coverage = sensor_coverage(config)
     >>> coverage[4].mean().item(), coverage[0, :, :16].max().item()  # centre lens; a corner's
     (1.0, 0.0)
+    >>> tuple(sensor_coverage(config, margin=16).shape)
+    (9, 416, 416)
     """
     sensor = torch.ones(config.sensor_shape, dtype=dtype, device=device)
-    return extract_sub_views(pad_sensor_frame(sensor, config), config)
+    return extract_sub_views(pad_sensor_frame(sensor, config), config, margin)
