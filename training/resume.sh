@@ -5,7 +5,9 @@
 # that folder holds none, then train, resuming from the latest checkpoint when there is one.
 # Usage (from the repository root): bash training/resume.sh RUN STATE [svcode train options]
 # OBJECTS=KIND (default mixed) trains on the v2 data with another phantom kind instead,
-# in runs/data-v2-KIND (the same seed, departures and frame count).
+# in runs/data-v2-KIND (the same seed, departures and frame count). MARGIN=PX stores the
+# views and targets PX past each sub-view's window (runs/data-v2-mPX, about 1.2 x the disk):
+# the model is then trained with that view margin.
 set -euo pipefail
 run="$1" state="$2"
 shift 2
@@ -16,8 +18,10 @@ export OMP_WAIT_POLICY="${OMP_WAIT_POLICY:-PASSIVE}"
 objects="${OBJECTS:-mixed}"
 data=runs/data-v2
 [ "$objects" = mixed ] || data="runs/data-v2-$objects"
+margin="${MARGIN:-0}"
+[ "$margin" = 0 ] || data="$data-m$margin"
 svcode dataset --preset cm2-mini --frames 480 --out "$data" --seed 0 --objects "$objects" \
-  --departures "$here/cm2-mini-v2/departures.json" --no-progress
+  --departures "$here/cm2-mini-v2/departures.json" --view-margin "$margin" --no-progress
 if [ ! -f "$run/checkpoints/latest.json" ] && [ -f "$state/checkpoints/latest.json" ]; then
   mkdir -p "$run" && cp -r "$state/." "$run/"
 fi

@@ -28,7 +28,11 @@ case "$arm" in
   edge16-long) extra=(--edge-weight 16 --seed 13 --init "$edge16");;
   edge32-ring8) extra=(--edge-weight 32 --ring-weight 8 --seed 13 --init "$edge16");;
   partial4) extra=(--partial-weight 4);;
-  *) echo "finetune.sh: zeros, reflect, edge16, edge16-long, edge32-ring8 or partial4" >&2
+  margin16) extra=(--edge-weight 16 --seed 13 --init "$edge16"); export MARGIN=16;;
+  margin16-long) extra=(--edge-weight 16 --seed 13 --init "$edge16" --epochs 8)
+    export MARGIN=16;;
+  *) echo "finetune.sh: zeros, reflect, edge16, edge16-long, edge32-ring8, partial4," \
+       "margin16 or margin16-long" >&2
      exit 2;;
 esac
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"

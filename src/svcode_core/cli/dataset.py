@@ -48,6 +48,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="storage of the arrays: float16 halves the disk (a cm2-v2 "
                         "frame's arrays take 438 MB in float32), rounding them by 2^-11; "
                         "the trainer reads float32 (default: float32)")  # fmt: skip
+    parser.add_argument("--view-margin", type=int, default=0, metavar="PX",
+                        help="store the sub-views and demixing targets PX pixels past each "
+                        "window, for SV-CoDe models trained with --view-margin (at most the "
+                        "system's kernel margin; default: 0)")  # fmt: skip
     add_progress_argument(parser)
     parser.set_defaults(func=run)
 
@@ -61,9 +65,11 @@ def run(args: argparse.Namespace) -> int:
     departures = None if args.departures is None else load_departures(args.departures, system)
     recipe = DataRecipe(frames=args.frames, seed=args.seed, val_fraction=args.val_fraction,
                         object_kind=args.object, departures=departures,
-                        instrument_frames=args.instrument_frames, dtype=args.dtype)
+                        instrument_frames=args.instrument_frames, dtype=args.dtype,
+                        view_margin=args.view_margin)
     options = {field: "--" + field.replace("_", "-")
-               for field in ("frames", "seed", "val_fraction", "instrument_frames")}
+               for field in ("frames", "seed", "val_fraction", "instrument_frames",
+                             "view_margin")}
     with in_option_words(options):
         recipe.validate()
     data = generate_dataset(args.out, system, recipe, progress=not args.no_progress)

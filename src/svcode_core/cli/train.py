@@ -63,6 +63,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--padding", metavar="{zeros,reflect}",
                         help="SV-CoDe: how the convolutions extend a tile past its edge, "
                         "with zeros or mirrored (default: zeros, or the --init file's)")
+    parser.add_argument("--view-margin", type=int, metavar="PX",
+                        help="SV-CoDe: run both stages on each sub-view enlarged by PX on "
+                        "every side, so the light past its window reaches the "
+                        "reconstruction (default: the dataset's --view-margin)")
     parser.add_argument("--ablation", default="none", choices=sorted(ABLATIONS),
                         help="switch off the coordinate gate or the positional encoding")
     parser.add_argument("--epochs", type=int, default=defaults.epochs)
@@ -210,15 +214,18 @@ def run(args: argparse.Namespace) -> int:
         device = torch.device("cuda", dist.local_rank)
     try:
         init = None
+        margin = args.view_margin
+        if margin is None and args.method == "svcode" and data.view_margin:
+            margin = data.view_margin
         if args.init is None:
             model_config = model_config_from(args.model_config or "mini", args.ablation,
                                              args.method, args.lens_context,
-                                             args.padding)  # fmt: skip
+                                             args.padding, margin)  # fmt: skip
         else:
             init, model_config = initial_weights(args, data.system)
             model_config = with_svcode_options(model_config, args.method,
                                                lens_context=args.lens_context,
-                                               padding=args.padding)
+                                               padding=args.padding, view_margin=margin)
         trainer = Trainer(data, args.out, model_config, config, device=device, dist=dist,
                           progress=not args.no_progress, init_weights=init)
         trainer.fit(resume=args.resume)

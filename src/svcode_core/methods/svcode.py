@@ -73,7 +73,7 @@ from .tiling import (
 )
 
 __all__ = ["AUTO_TOLERANCE_DB", "Reconstructor", "TilePlan", "auto_precision", "bf16_network",
-           "features_in", "plan_tiles", "tile_overlap", "tile_plan"]
+           "features_in", "plan_tiles", "tile_overlap", "tile_plan", "view_margin"]
 
 _SVCODE = registry.method("svcode")
 _DEFAULTS = _SVCODE.defaults
@@ -241,7 +241,8 @@ def tile_plan(
     device: str | torch.device = "cpu",
 ) -> TilePlan:
     """The tiling of :class:`Reconstructor` (its arguments of the same names; a ``None``
-    is planned): what ``svcode reconstruct`` and the plugin run and estimate.
+    is planned): what ``svcode reconstruct`` and the plugin run and estimate. The tiles
+    cover the sub-view, enlarged by the model's :func:`view_margin`.
 
     Without ``tile_size``, an SV-CoDe model's tiles come from :func:`plan_tiles` and other
     models (or ``None``) take ``system.patch_size``; a given tile is strided by half. Without
@@ -257,9 +258,10 @@ def tile_plan(
     """
     planned_batch = 8
     precision = _concrete(precision, model, device)
+    field = system.sub_view_size + 2 * view_margin(model)
     if tile_size is None and hasattr(model, "working_bytes_per_pixel"):
         tile_size, planned, planned_batch = plan_tiles(
-            model, system.sub_view_size, tile_memory_bytes, PRECISIONS[precision]
+            model, field, tile_memory_bytes, PRECISIONS[precision]
         )
         stride = planned if stride is None else stride
     elif tile_size is None:
@@ -267,7 +269,7 @@ def tile_plan(
         stride = system.patch_stride if stride is None else stride
     elif stride is None:
         stride = max(tile_size // 2, 1)
-    grid = TileGrid(system.sub_view_size, tile_size, stride)
+    grid = TileGrid(field, tile_size, stride)
     per_tile = 0
     if hasattr(model, "working_bytes_per_pixel"):
         side = math.ceil(tile_size / model.stride) * model.stride
@@ -275,6 +277,19 @@ def tile_plan(
         planned_batch = max(1, min(planned_batch, tile_memory_bytes // per_tile))
     batch_size = planned_batch if batch_size is None else batch_size
     return TilePlan(grid, batch_size, batch_size * per_tile)
+
+
+def view_margin(model: torch.nn.Module | None) -> int:
+    """Pixels by which ``model`` sees each sub-view past its window
+    (:attr:`~svcode_core.network.ModelConfig.view_margin`; 0 for models without one).
+
+    Examples
+    --------
+    >>> from svcode_core.network import ModelConfig, SVCoDe
+    >>> view_margin(SVCoDe(ModelConfig.mini().replace(view_margin=16)))
+    16
+    """
+    return getattr(getattr(model, "model_config", None), "view_margin", 0)
 
 
 def _relay(
@@ -410,10 +425,12 @@ class Reconstructor(BaseReconstructor):
             model, self._features = bf16_network(model, self.device)
         self.model = model.to(self.device).eval()
         config = getattr(model, "model_config", None)
+        #: pixels by which the model sees each sub-view past its window
+        self.view_margin = view_margin(model)
         self._crop_views = (
             functools.partial(context_views, reach=config.context_reach)
             if getattr(config, "lens_context", False)
-            else extract_sub_views
+            else functools.partial(extract_sub_views, margin=self.view_margin)
         )
         if pool_window is not None:
             if not hasattr(self.model, "set_pool_window"):
@@ -451,7 +468,7 @@ class Reconstructor(BaseReconstructor):
         config = getattr(self.model, "model_config", None)
         if not getattr(config, "mask_spacing", 0) or not hasattr(self.model, "mask_field_bytes"):
             return 0
-        step, size = self.model.stride, self.system.sub_view_size
+        step, size = self.model.stride, self.grid.size
         cells = math.ceil((size + step - 1) / step) * step  # the side mask_field_bytes counts
         side = math.ceil(self.grid.patch / step) * step  # a tile padded to the stride
         field = self.model.mask_field_bytes(size, PRECISIONS[self.precision])
@@ -512,7 +529,8 @@ class Reconstructor(BaseReconstructor):
     def prepare(self, frame: np.ndarray, index: int = 0) -> np.ndarray:
         """One raw frame → its nine sub-views ``(9, S, S)`` float32 (checked, clipped at 0);
         ``(9 k, S, S)`` with each lens's ``k`` context crops for a model with
-        :attr:`~svcode_core.network.ModelConfig.lens_context`."""
+        :attr:`~svcode_core.network.ModelConfig.lens_context`; ``S + 2m`` square for a
+        model with a :attr:`view_margin` ``m``."""
         return self._cut(self._values(frame, index))
 
     @staticmethod
@@ -541,7 +559,7 @@ class Reconstructor(BaseReconstructor):
     ) -> tuple[np.ndarray | None, np.ndarray]:
         with torch.inference_mode(), self._autocast():
             inputs = torch.from_numpy(tiles).to(self.device, self._features)
-            where = torch.from_numpy(np.ascontiguousarray(origins)).to(self.device)
+            where = torch.from_numpy(origins - self.view_margin).to(self.device)
             demixed, recon = self.model(inputs, where, self.system.sub_view_size)
         views = demixed.float().cpu().numpy() if want_views else None
         return views, recon.float().cpu().numpy()
@@ -606,7 +624,8 @@ class Reconstructor(BaseReconstructor):
             output = yield from _relay(tiled, index, count)
             timings["model"] += output.model_seconds
             timings["blend"] += time.perf_counter() - start - output.model_seconds
-            recon[index] = output.reconstruction / np.float32(gains[index])
+            field = (slice(self.view_margin, self.view_margin + size),) * 2
+            recon[index] = output.reconstruction[field] / np.float32(gains[index])
             if self.refinement is not None:
                 yield FrameProgress(index, count, output.tiles_run, output.tiles_run, True)
                 if cancel is not None and cancel.is_set():
@@ -615,7 +634,7 @@ class Reconstructor(BaseReconstructor):
                 recon[index] = self.refinement(stack[index], recon[index], index)
                 timings["refine"] += time.perf_counter() - start
             if views is not None:
-                views[index] = output.views / np.float32(gains[index])
+                views[index] = output.views[(slice(None), *field)] / np.float32(gains[index])
             result.tiles_run += output.tiles_run
             result.tiles_skipped += output.tiles_skipped
         result.tiles_total = result.tiles_run + result.tiles_skipped

@@ -161,6 +161,14 @@ class ModelConfig(BlockConfig):
         edge: ``"zeros"`` (NAFNet's) or ``"reflect"`` (mirrored, so that the sub-view's
         border does not look like a dark object beyond it). It changes no weights. Model
         files written before this option existed load with ``"zeros"``.
+    view_margin : int
+        ``m > 0``: both stages run on the sub-view grid enlarged by ``m`` pixels on every
+        side (each lens's crop taken ``m`` pixels past its window, tile origins from
+        ``-m``), so the light that a point near the field's edge spreads past the window
+        reaches the reconstruction; the ``S × S`` field is kept. The demixing targets run
+        past the window alike (a dataset made with ``--view-margin``). It changes no
+        weights. ``0``: the sub-views as they are. Model files written before this option
+        existed load with 0.
     """
 
     width: int = 32
@@ -185,6 +193,7 @@ class ModelConfig(BlockConfig):
     max_width: int = 0
     pixel_unshuffle: int = 1
     padding: str = "zeros"
+    view_margin: int = 0
 
     block_lists = ("demix_enc_blocks", "demix_dec_blocks", "recon_enc_blocks",
                    "recon_dec_blocks")  # fmt: skip
@@ -235,7 +244,7 @@ class ModelConfig(BlockConfig):
         for name in ("width", "view_width", "pe_bands", "mlp_hidden", "context_reach"):
             check_int(name, getattr(self, name), minimum=1)
         for name in ("demix_middle_blocks", "recon_middle_blocks", "mask_spacing", "pool_window",
-                     "max_width"):
+                     "max_width", "view_margin"):
             check_int(name, getattr(self, name), minimum=0)
         for name in self.block_lists:
             value = getattr(self, name)
@@ -267,4 +276,6 @@ class ModelConfig(BlockConfig):
             raise ConfigError(f"max_width: {self.max_width} is below width {self.width}")
         if self.context_reach != 1 and not self.lens_context:
             raise ConfigError(f"context_reach: {self.context_reach} needs lens_context")
+        if self.view_margin and self.lens_context:
+            raise ConfigError("view_margin: does not combine with lens_context")
         return self

@@ -229,7 +229,7 @@ class Instrument:
         """``(9, 2)`` integer moves of each lens's chief ray from nominal to truth."""
         return np.asarray(self.truth.chief_rays) - np.asarray(self.nominal.chief_rays)
 
-    def observe(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def observe(self, x: torch.Tensor, past: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
         """Expected sensor frame and nominal-registered demixing targets of object ``x``.
 
         Returns
@@ -237,26 +237,30 @@ class Instrument:
         (expected, targets)
             The mean camera reading ``(..., H, W)`` (in-focus light plus haze, through
             the gain and dark-signal maps, before noise), and each lens's noiseless image
-            in its *nominal* sub-view, sensor-truncated, ``(..., 9, S, S)``.
+            in its *nominal* sub-view, sensor-truncated, ``(..., 9, S, S)``; with ``past``
+            each image runs on that many pixels past the sub-view
+            (:meth:`~svcode_core.physics.cm2.CM2Operator.lens_images`).
         """
-        clean, targets = self.operator.measure_with_targets(x)
+        clean, targets = self.operator.measure_with_targets(x, past)
         if self.departures.background_fraction > 0:
             clean = clean + haze(clean, self.departures.background_fraction,
                                  self.departures.background_width_px)  # fmt: skip
         return self.sensor.expected(clean), self._register(targets)
 
     def _register(self, targets: torch.Tensor) -> torch.Tensor:
-        """Move each lens's target from its true sub-view into its nominal one."""
+        """Move each lens's target from its true sub-view into its nominal one (sub-views
+        enlarged alike when the targets run past them)."""
         moves = self.view_offsets
         if not moves.any():
             return targets
-        size = self.nominal.sub_view_size
+        size = targets.shape[-1]
+        past = (size - self.nominal.sub_view_size) // 2
         out = torch.zeros_like(targets)
         for lens, (dr, dc) in enumerate(moves.tolist()):
             src_r, dst_r = _span(dr, size)
             src_c, dst_c = _span(dc, size)
             out[..., lens, dst_r, dst_c] = targets[..., lens, src_r, src_c]
-        return out * sensor_coverage(self.nominal, targets.dtype, targets.device)
+        return out * sensor_coverage(self.nominal, targets.dtype, targets.device, margin=past)
 
 
 def _span(move: int, size: int) -> tuple[slice, slice]:

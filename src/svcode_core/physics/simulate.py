@@ -206,6 +206,7 @@ class Simulator:
         noise: bool = True,
         frames: int = 1,
         progress: bool = False,
+        margin: int = 0,
     ) -> Simulation:
         """Image ``obj`` through the instrument.
 
@@ -223,6 +224,10 @@ class Simulator:
             Number of independent noise draws of the same scene (``T``).
         progress : bool
             Show a progress bar over frames.
+        margin : int
+            The sub-views (``views`` and ``demixed``) run this many pixels past their
+            windows on every side, ``(9, S + 2·margin, S + 2·margin)``; at most the
+            operator's margin.
 
         Returns
         -------
@@ -233,10 +238,10 @@ class Simulator:
         op = self.operator
         x = torch.as_tensor(np.asarray(obj), dtype=op.lenses.dtype, device=op.lenses.device)
         if self.instrument is None:
-            clean, targets = op.measure_with_targets(x)
+            clean, targets = op.measure_with_targets(x, margin)
             read = functools.partial(apply_sensor_noise, noise=self.system.noise)
         else:
-            clean, targets = self.instrument.observe(x)
+            clean, targets = self.instrument.observe(x, margin)
             read = self.instrument.sensor.read
         generator = torch.Generator(device=clean.device)
         if seed is None:
@@ -247,7 +252,7 @@ class Simulator:
         for _ in tqdm(range(frames), desc="simulate", disable=not progress, leave=False):
             frame = read(clean, generator=generator) if noise else clean
             readings.append(frame)
-        views = extract_sub_views(pad_sensor_frame(readings[0], self.system), self.system)
+        views = extract_sub_views(pad_sensor_frame(readings[0], self.system), self.system, margin)
         measurement = torch.stack(readings) if frames > 1 else readings[0]
         return Simulation(
             object=_numpy(x),

@@ -38,7 +38,8 @@ def config_class(method: str) -> type:
 
 
 def model_config_from(spec: str, ablation: str = "none", method: str = "svcode",
-                      lens_context: int = 0, padding: str | None = None) -> AnyModelConfig:
+                      lens_context: int = 0, padding: str | None = None,
+                      view_margin: int | None = None) -> AnyModelConfig:
     """The configuration of ``method`` from ``"mini"``, ``"reference"`` (SV-CoDe only) or a
     JSON file, with the SV-CoDe options (:func:`with_svcode_options`).
 
@@ -59,17 +60,18 @@ def model_config_from(spec: str, ablation: str = "none", method: str = "svcode",
     else:
         path = _config_file(spec, "neither mini, reference nor")
         config = ModelConfig.from_json(path.read_text(encoding="utf-8"))
-    return with_svcode_options(config, method, ablation, lens_context, padding)
+    return with_svcode_options(config, method, ablation, lens_context, padding, view_margin)
 
 
 def with_svcode_options(config: AnyModelConfig, method: str, ablation: str = "none",
-                        lens_context: int = 0, padding: str | None = None) -> AnyModelConfig:
+                        lens_context: int = 0, padding: str | None = None,
+                        view_margin: int | None = None) -> AnyModelConfig:
     """``config`` with an ablation (:data:`ABLATIONS`), the lens context of reach
     ``lens_context`` (0: none; :attr:`~svcode_core.network.ModelConfig.lens_context`,
-    :attr:`~svcode_core.network.ModelConfig.context_reach`) and the convolutions'
-    ``padding`` (``None``: the configuration's) applied; they belong to SV-CoDe and are
-    refused for the configuration of another method. A reach shorter than the one
-    ``config`` already has is refused too.
+    :attr:`~svcode_core.network.ModelConfig.context_reach`), the convolutions'
+    ``padding`` and the ``view_margin`` (``None``: the configuration's) applied; they
+    belong to SV-CoDe and are refused for the configuration of another method. A reach
+    shorter than the one ``config`` already has is refused too.
 
     Examples
     --------
@@ -78,7 +80,8 @@ def with_svcode_options(config: AnyModelConfig, method: str, ablation: str = "no
     """
     asked = [flag for flag, on in (("--ablation", ablation != "none"),
                                    ("--lens-context", lens_context),
-                                   ("--padding", padding is not None)) if on]
+                                   ("--padding", padding is not None),
+                                   ("--view-margin", view_margin is not None)) if on]
     if not isinstance(config, ModelConfig):
         if asked:
             verb = "applies" if len(asked) == 1 else "apply"
@@ -86,7 +89,9 @@ def with_svcode_options(config: AnyModelConfig, method: str, ablation: str = "no
         return config
     config = config.replace(**ABLATIONS[ablation])
     if padding is not None:
-        config = config.replace(padding=padding).validate()
+        config = config.replace(padding=padding)
+    if view_margin is not None:
+        config = config.replace(view_margin=view_margin)
     if not lens_context:
         return config
     if config.lens_context and lens_context < config.context_reach:

@@ -3,8 +3,10 @@
 A dataset folder holds
 
 * ``views.npy``: the nine **noiseless** sub-views of each frame, ``(N, 9, S, S)``; noise is
-  drawn afresh by the patch sampler every time a patch is used (design.md §1);
+  drawn afresh by the patch sampler every time a patch is used;
 * ``demixed.npy``: the demixing targets, each lens's image alone, ``(N, 9, S, S)``;
+  with ``DataRecipe.view_margin`` ``m`` both hold the sub-views enlarged by ``m`` on every
+  side, ``(N, 9, S + 2m, S + 2m)``, for models that see each view past its window;
 * ``objects.npy``: the ground-truth objects ``(N, S, S)``;
 * ``system.json``: the instrument the frames were simulated with;
 * ``manifest.json``: the recipe (frames, seed, object mix, brightness range), the
@@ -89,6 +91,10 @@ class DataRecipe:
     dtype : {"float32", "float16"}
         How the arrays are stored: float16 halves the disk (a paper-scale frame's arrays
         are 438 MB in float32) at a relative rounding of 2⁻¹¹; samples are read as float32.
+    view_margin : int
+        The stored views and demixing targets run this many pixels past each sub-view's
+        window (at most the system's kernel margin), for models with
+        :attr:`~svcode_core.network.ModelConfig.view_margin` up to it.
     """
 
     frames: int
@@ -99,6 +105,7 @@ class DataRecipe:
     departures: Departures | None = None
     instrument_frames: int = 8
     dtype: str = "float32"
+    view_margin: int = 0
 
     def validate(self) -> DataRecipe:
         """Raise ``ValueError`` (:class:`~svcode_core.config.ConfigError`) naming the first
@@ -119,6 +126,7 @@ class DataRecipe:
                 raise ConfigError(f"departures: must be Departures, got {self.departures!r}")
             self.departures.validate()
         check_int("instrument_frames", self.instrument_frames, 1)
+        check_int("view_margin", self.view_margin, 0)
         if self.dtype not in STORE_DTYPES:
             raise ConfigError(f"dtype: must be one of {', '.join(STORE_DTYPES)}, "
                               f"got {self.dtype!r}")
@@ -131,8 +139,11 @@ class DataRecipe:
         if self.departures is not None:
             data["departures"] = self.departures.to_dict()
             data["instrument_frames"] = self.instrument_frames
-        if self.dtype != "float32":  # float32 datasets keep the recipe they were made with
+        # fields written only when set: older datasets keep the recipe they were made with
+        if self.dtype != "float32":
             data["dtype"] = self.dtype
+        if self.view_margin:
+            data["view_margin"] = self.view_margin
         return data
 
     @classmethod
@@ -207,8 +218,10 @@ class TrainingData:
     system : SystemConfig
     manifest : dict
     views, demixed : numpy.memmap
-        ``(count, 9, S, S)``: noiseless sub-views and demixing targets, in the recipe's
-        storage type (read them through :meth:`read`).
+        ``(count, 9, S + 2m, S + 2m)``: noiseless sub-views and demixing targets, enlarged
+        by the recipe's ``view_margin`` ``m`` (:attr:`view_margin`), in the recipe's
+        storage type (read them through :meth:`read`; :meth:`sub_views` cuts the views
+        at their windows).
     objects : numpy.memmap
         ``(count, S, S)`` ground truth.
     train_frames, val_frames : list of int
@@ -235,6 +248,17 @@ class TrainingData:
         self.train_frames = [i for i in self.manifest["train_frames"] if i < count]
         self.val_frames = [i for i in self.manifest["val_frames"] if i < count]
         self.recipe = DataRecipe.from_dict(self.manifest["recipe"])
+
+    @property
+    def view_margin(self) -> int:
+        """Pixels by which the stored views and targets run past each sub-view's window."""
+        return self.recipe.view_margin
+
+    def sub_views(self, index: int) -> np.ndarray:
+        """Frame ``index``'s nine noiseless sub-views cut at their windows, ``(9, S, S)``: a
+        view of the stored array (nothing read yet; :meth:`read` reads it)."""
+        m, size = self.view_margin, self.system.sub_view_size
+        return self.views[index][:, m : m + size, m : m + size]
 
     def frame_departures(self, index: int) -> Departures | None:
         """The departures frame ``index`` was simulated with (``None``: nominal)."""
@@ -347,12 +371,9 @@ def generate_dataset(
     recipe = recipe.validate()
     out = Path(out_dir)
     manifest_path = out / MANIFEST
-    size = system.sub_view_size
-    shapes = {
-        "views": (recipe.frames, N_LENSES, size, size),
-        "demixed": (recipe.frames, N_LENSES, size, size),
-        "objects": (recipe.frames, size, size),
-    }
+    size, margin = system.sub_view_size, recipe.view_margin
+    enlarged = (recipe.frames, N_LENSES, size + 2 * margin, size + 2 * margin)
+    shapes = {"views": enlarged, "demixed": enlarged, "objects": (recipe.frames, size, size)}
     itemsize = np.dtype(recipe.dtype).itemsize
     if not manifest_path.is_file():
         require_space({out: sum(itemsize * int(np.prod(shape)) + 4096
@@ -398,7 +419,7 @@ def generate_dataset(
             departures = frame_departures(recipe, index)
             if departures is not None:  # reuses the forward model within a block
                 simulator = simulator.with_departures(departures)
-            scene = simulator.simulate(obj, seed=0, noise=False)
+            scene = simulator.simulate(obj, seed=0, noise=False, margin=margin)
             arrays["views"][index] = scene.views
             arrays["demixed"][index] = scene.demixed
             arrays["objects"][index] = scene.object

@@ -28,8 +28,8 @@ from ..evaluation.metrics import psnr_from_mse
 from ..evaluation.zones import EDGE_STRIP, RING_RADIUS
 from ..physics.geometry import normalized_coordinates, sensor_coverage
 
-__all__ = ["EDGE_STRIP", "field_weights", "joint_loss", "psnr_per_sample", "seen_by_every_lens",
-           "ssim_per_sample", "stage_loss", "svcode_loss"]
+__all__ = ["EDGE_STRIP", "field_weights", "in_field", "joint_loss", "psnr_per_sample",
+           "seen_by_every_lens", "ssim_per_sample", "stage_loss", "svcode_loss"]
 
 #: Smallest MSE used by :func:`psnr_per_sample` (caps the PSNR of a perfect patch at 100 dB).
 MIN_MSE = 1e-10
@@ -113,7 +113,8 @@ def field_weights(
     pixels of the sub-view's edge, ``ring`` on the outer ring (normalised field radius
     above :data:`~svcode_core.evaluation.zones.RING_RADIUS`, the benchmark's zone),
     ``partial`` on the pixels that not every lens sees (``seen_by_all`` false), their
-    product where several hold, 1 elsewhere.
+    product where several hold, 1 elsewhere, and 1 on the pixels of a crop that lie past
+    the sub-view (a model with a view margin).
 
     Parameters
     ----------
@@ -152,6 +153,9 @@ def field_weights(
     ...                   seen_by_all=seen)
     >>> w[0, 0, :, 0].tolist()  # rows 1-3 of the sub-view
     [3.0, 1.0, 1.0]
+    >>> w = field_weights(torch.tensor([[2, -1]]), size=3, sub_view_size=6, edge=5.0, strip=2)
+    >>> w[0, 0, 0].tolist()  # row 2: column -1 lies past the sub-view
+    [1.0, 5.0, 5.0]
     """
     pixels = origins.to(torch.int64)[:, :, None] + torch.arange(size)  # (B, 2, size)
     near = (pixels < strip) | (pixels >= sub_view_size - strip)
@@ -165,9 +169,24 @@ def field_weights(
     if partial != 1.0:
         if seen_by_all is None:
             raise ValueError("field_weights: a partial weight needs seen_by_all")
-        rows, cols = pixels[:, 0, :, None], pixels[:, 1, None, :]
-        weights = weights * (1.0 + (partial - 1.0) * (~seen_by_all[rows, cols]).float())
-    return weights[:, None]
+        rows, cols = pixels.clamp(0, sub_view_size - 1).unbind(1)
+        weights = weights * (1.0 + (partial - 1.0) * (~seen_by_all[rows[:, :, None],
+                                                                   cols[:, None, :]]).float())
+    return torch.where(in_field(origins, size, sub_view_size), weights[:, None], 1.0)
+
+
+def in_field(origins: torch.Tensor, size: int, sub_view_size: int) -> torch.Tensor:
+    """``(B, 1, size, size)`` bool: which pixels of the square crops at ``origins``
+    ``(B, 2)`` lie inside the ``sub_view_size`` field.
+
+    Examples
+    --------
+    >>> in_field(torch.tensor([[-1, 0]]), 2, 4)[0, 0].tolist()
+    [[False, False], [True, True]]
+    """
+    pixels = origins.to(torch.int64)[:, :, None] + torch.arange(size)
+    within = (pixels >= 0) & (pixels < sub_view_size)
+    return (within[:, 0, :, None] & within[:, 1, None, :])[:, None]
 
 
 def seen_by_every_lens(system: SystemConfig) -> torch.Tensor:

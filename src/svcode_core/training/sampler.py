@@ -134,7 +134,7 @@ class _NoisySamples(torch.utils.data.Dataset):
         if not self.normalise_exposure:
             return 1.0
         if frame not in self._gains:
-            views = self.data.read(self.data.views[frame])
+            views = self.data.read(self.data.sub_views(frame))
             sensor = crop_to_sensor(assemble_frame(views, self.system), self.system)
             if self.noise:
                 generator = torch.Generator().manual_seed(derive_seed(self.seed, 4, frame))
@@ -157,7 +157,7 @@ class _NoisySamples(torch.utils.data.Dataset):
         (:func:`~svcode_core.physics.geometry.assemble_frame`), with the sensor model
         applied to the sensor window only, as :class:`~svcode_core.physics.simulate.Simulator`
         does (unless ``noise`` is off)."""
-        padded = assemble_frame(self.data.read(self.data.views[frame]), self.system)
+        padded = assemble_frame(self.data.read(self.data.sub_views(frame)), self.system)
         if not self.noise:
             return padded
         sensor = crop_to_sensor(padded, self.system)
@@ -177,7 +177,7 @@ class _NoisySamples(torch.utils.data.Dataset):
         rows, cols = self.system.sensor_window
         crops = torch.zeros(len(corners), size, size)
         for (top, left, bottom, right), members in windows:
-            values = assemble_window(self.data.views[frame], self.system, top, left,
+            values = assemble_window(self.data.sub_views(frame), self.system, top, left,
                                      bottom - top, right - left)  # fmt: skip
             if sensor is not None:  # the sensor's pixels in the window: read; the rest stays 0
                 r0, r1 = max(top, rows.start), min(bottom, rows.stop)
@@ -251,6 +251,12 @@ class PatchDataset(_NoisySamples):
     patch : int, optional
         Patch side ``P``, on a grid of stride ``P // 2``; default the system's
         ``patch_size`` and ``patch_stride``.
+    view_margin : int
+        The patches tile the sub-view enlarged by this many pixels on every side (origins
+        from ``-view_margin``), for a model with
+        :attr:`~svcode_core.network.ModelConfig.view_margin`: views and demixing targets
+        run past the window there (the dataset must hold at least this margin), the
+        object is zero beyond the field.
 
     Notes
     -----
@@ -273,6 +279,7 @@ class PatchDataset(_NoisySamples):
         photon_range: tuple[float, float] = (1.0, 1.0),
         normalise_exposure: bool = False,
         patch: int | None = None,
+        view_margin: int = 0,
     ) -> None:
         super().__init__(data, frames, fixed_noise, seed, noise, photon_range,
                          normalise_exposure)
@@ -280,11 +287,20 @@ class PatchDataset(_NoisySamples):
         self.patch, stride = system.patch_size, system.patch_stride
         if patch is not None:
             self.patch, stride = patch, max(patch // 2, 1)
+        if view_margin > data.view_margin:
+            raise ValueError(f"the model sees {view_margin} px past each sub-view, the dataset "
+                             f"{data.path} holds {data.view_margin}: make one with "
+                             f"`svcode dataset --view-margin {view_margin}`")  # fmt: skip
+        if view_margin and lens_context:
+            raise ValueError("view_margin and lens_context do not combine")
         self.lens_context, self.context_reach = lens_context, context_reach
-        self.origins = TileGrid(system.sub_view_size, self.patch, stride).origins
+        self.view_margin = view_margin
+        size = system.sub_view_size + 2 * view_margin
+        self.origins = TileGrid(size, self.patch, stride).origins - view_margin
         if not lens_context:  # noise per view crop: needs crops without shared pixels
             check_disjoint_view_patches(system, self.patch)
-            self.sensor_mask = sensor_coverage(system).numpy().astype(bool)
+            coverage = sensor_coverage(system, margin=data.view_margin)
+            self.sensor_mask = coverage.numpy().astype(bool)
 
     def __len__(self) -> int:
         return len(self.frames) * len(self.origins)
@@ -299,7 +315,9 @@ class PatchDataset(_NoisySamples):
     def __getitem__(self, key: int | tuple[int, int]) -> dict[str, torch.Tensor | int]:
         index, generator = self._resolve(key)
         frame, (r, c) = self.locate(index)
-        crop = (slice(r, r + self.patch), slice(c, c + self.patch))
+        stored = self.data.view_margin  # where sub-view pixel 0 sits in the stored arrays
+        crop = (slice(r + stored, r + stored + self.patch),
+                slice(c + stored, c + stored + self.patch))  # fmt: skip
         if self.lens_context:
             corners = context_corners(self.system, (int(r), int(c)), self.context_reach)
             views = self.window_crops(frame, corners, self.patch, generator)
@@ -313,11 +331,22 @@ class PatchDataset(_NoisySamples):
         return {
             "views": views * gain,
             "demixed": demixed * gain,
-            "object": self.data.read(self.data.objects[frame][crop])[None] * gain,
+            "object": self._object(frame, int(r), int(c))[None] * gain,
             "origin": torch.tensor([r, c], dtype=torch.int64),
             "gain": torch.tensor(gain, dtype=torch.float32),
             "index": index,
         }
+
+
+    def _object(self, frame: int, r: int, c: int) -> torch.Tensor:
+        """The object's patch at sub-view origin ``(r, c)``, zero beyond the field."""
+        size, p = self.system.sub_view_size, self.patch
+        out = torch.zeros(p, p)
+        r0, r1, c0, c1 = max(r, 0), min(r + p, size), max(c, 0), min(c + p, size)
+        if r0 < r1 and c0 < c1:
+            out[r0 - r : r1 - r, c0 - c : c1 - c] = self.data.read(
+                self.data.objects[frame][r0:r1, c0:c1])
+        return out
 
 
 class FrameDataset(_NoisySamples):

@@ -26,6 +26,7 @@ from ..methods.learned import LEARNED_MODELS, FourierNetConfig, MultiWienerConfi
 from ..network import ModelConfig, SVCoDe
 from ..physics.cm2 import CM2Operator
 from .dataset import TrainingData
+from .loss import in_field
 from .sampler import FrameDataset, PatchDataset
 
 __all__ = ["FrameTask", "PatchTask", "Stages", "training_task"]
@@ -67,7 +68,8 @@ class PatchTask:
         :class:`PatchDataset`)."""
         return PatchDataset(data, frames, fixed_noise=fixed_noise, seed=seed,
                             lens_context=self.config.lens_context,
-                            context_reach=self.config.context_reach, **sampling)
+                            context_reach=self.config.context_reach,
+                            view_margin=self.config.view_margin, **sampling)
 
     def origins(self, dataset: PatchDataset) -> int:
         """Distinct sample origins per frame (patches at one origin share their masks)."""
@@ -80,9 +82,15 @@ class PatchTask:
     def outputs(
         self, net: nn.Module, batch: dict[str, torch.Tensor], system: SystemConfig
     ) -> Stages:
-        """Run ``net`` on a batch; the pairs of both stages."""
+        """Run ``net`` on a batch; the pairs of both stages. A patch's reconstruction past
+        the field (a model with a view margin) is not scored: it is replaced there by its
+        target."""
         demixed, recon = net(batch["views"], batch["origin"], system.sub_view_size)
-        return {"demix": (demixed, batch["demixed"]), "recon": (recon, batch["object"])}
+        target = batch["object"]
+        if self.config.view_margin:
+            inside = in_field(batch["origin"], target.shape[-1], system.sub_view_size)
+            recon = torch.where(inside.to(recon.device), recon, target.to(recon.dtype))
+        return {"demix": (demixed, batch["demixed"]), "recon": (recon, target)}
 
     def evaluating(self, model: nn.Module) -> AbstractContextManager:
         """Context for validation passes: the coordinate-mask cache."""

@@ -505,7 +505,8 @@ class Trainer:
         source, _ = load_model(path)
         config = self.model_config
         if isinstance(config, ModelConfig) and isinstance(source, SVCoDe):
-            config = config.replace(padding=source.model_config.padding)  # changes no weights
+            config = config.replace(padding=source.model_config.padding,  # these change
+                                    view_margin=source.model_config.view_margin)  # no weights
             if (source.model_config.views_per_lens < config.views_per_lens
                     and source.model_config.replace(lens_context=True,
                                                     context_reach=config.context_reach) == config):
