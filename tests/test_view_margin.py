@@ -15,7 +15,13 @@ from svcode_core.config import ConfigError
 from svcode_core.methods.model_file import load_model
 from svcode_core.methods.svcode import Reconstructor
 from svcode_core.network import SVCoDe
-from svcode_core.physics.geometry import extract_sub_views, pad_sensor_frame
+from svcode_core.physics.geometry import (
+    assemble_frame,
+    context_views,
+    crop_to_sensor,
+    extract_sub_views,
+    pad_sensor_frame,
+)
 from svcode_core.training import PatchDataset, TrainConfig, Trainer, generate_dataset
 from svcode_core.training.tasks import PatchTask
 
@@ -93,7 +99,28 @@ def test_a_margin_beyond_the_stored_one_is_refused(both):
     with pytest.raises(ValueError, match="--view-margin 4"):
         PatchDataset(plain, plain.train_frames, view_margin=M)
     with pytest.raises(ConfigError, match="view_margin"):
-        TINY_MODEL.replace(view_margin=2, lens_context=True)
+        TINY_MODEL.replace(view_margin=-1)
+
+
+def test_lens_context_crops_run_past_the_window_from_the_frame(both):
+    """The lens-context crops come from the padded frame that the sub-views tile: past a
+    window they hold what the sensor read there."""
+    _, wide = both
+    system, p = wide.system, wide.system.patch_size
+    data = PatchDataset(wide, wide.train_frames, noise=False, lens_context=True,
+                        view_margin=M)  # fmt: skip
+    frame = wide.read(wide.views[wide.train_frames[0]])
+    padded = pad_sensor_frame(crop_to_sensor(assemble_frame(
+        frame[:, M:-M, M:-M], system), system), system)
+    for index in (0, len(data.origins) - 1):
+        item = data[index]
+        origin = tuple(item["origin"].tolist())
+        assert min(origin) < 0 or max(origin) > system.sub_view_size - p
+        torch.testing.assert_close(item["views"], context_views(padded, system, origin, p))
+        own = item["views"][::9]  # each lens's own crop: the stored enlarged views
+        r, c = (o + M for o in origin)
+        torch.testing.assert_close(own, wide.read(wide.views[wide.train_frames[0], :, r:r + p,
+                                                             c:c + p]))
 
 
 def test_the_reconstruction_past_the_field_is_not_scored(both):
@@ -129,19 +156,21 @@ def test_fine_tuning_adds_the_margin_to_a_model_without(both, tmp_path):
     assert model.model_config.view_margin == M
 
 
-def test_the_reconstructor_runs_the_enlarged_sub_views(tiny_system):
-    """The reconstruction is the model's output on the sub-views cut ``m`` past their
-    windows at origin ``-m``, its middle kept."""
+@pytest.mark.parametrize("lens_context", [False, True])
+def test_the_reconstructor_runs_the_enlarged_sub_views(tiny_system, lens_context):
+    """The reconstruction is the model's output on the sub-views (with the lens context,
+    each lens's crops) cut ``m`` past their windows at origin ``-m``, its middle kept."""
     torch.manual_seed(0)
-    model = SVCoDe(TINY_MODEL.replace(view_margin=M)).eval()
+    model = SVCoDe(TINY_MODEL.replace(view_margin=M, lens_context=lens_context)).eval()
     frame = np.random.default_rng(0).random(tiny_system.sensor_shape, dtype=np.float32)
     rec = Reconstructor(model, tiny_system, precision="fp32", skip_empty=False,
                         normalise_exposure=False, mask_cache_bytes=0)  # fmt: skip
     assert rec.grid.size == tiny_system.sub_view_size + 2 * M
     result = rec(frame, return_views=True)
-    views = extract_sub_views(pad_sensor_frame(torch.from_numpy(frame), tiny_system),
-                              tiny_system, M)  # fmt: skip
+    padded = pad_sensor_frame(torch.from_numpy(frame), tiny_system)
     size = tiny_system.sub_view_size
+    views = (context_views(padded, tiny_system, (-M, -M), size + 2 * M) if lens_context
+             else extract_sub_views(padded, tiny_system, M))  # fmt: skip
     with torch.no_grad():
         demixed, recon = model(views[None], torch.tensor([[-M, -M]]), size)
     middle = (slice(M, M + size),) * 2

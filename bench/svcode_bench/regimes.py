@@ -363,13 +363,16 @@ def model_label(weights: Path) -> str:
     """``SV-CoDe``, or e.g. ``SV-CoDe (no CoordGate, no PE)`` for a model with ablations,
     ``SV-CoDe (lens context)`` for one with
     :attr:`~svcode_core.network.ModelConfig.lens_context`, ``SV-CoDe (mirrored padding)``
-    for one with :attr:`~svcode_core.network.ModelConfig.padding` ``"reflect"``."""
+    for one with :attr:`~svcode_core.network.ModelConfig.padding` ``"reflect"``,
+    ``SV-CoDe (view margin 16)`` for one with
+    :attr:`~svcode_core.network.ModelConfig.view_margin` 16."""
     config = read_model_metadata(weights)["model_config"]
     notes = [f"no {name}" for name, on in (("CoordGate", config.coord_gate),
                                            ("PE", config.positional_encoding)) if not on]
     reach = f", reach {config.context_reach}" if config.context_reach > 1 else ""
     notes += [f"lens context{reach}"] if config.lens_context else []
     notes += ["mirrored padding"] if config.padding == "reflect" else []
+    notes += [f"view margin {config.view_margin}"] if config.view_margin else []
     return "SV-CoDe" + (f" ({', '.join(notes)})" if notes else "")
 
 

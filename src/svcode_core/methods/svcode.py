@@ -427,10 +427,12 @@ class Reconstructor(BaseReconstructor):
         config = getattr(model, "model_config", None)
         #: pixels by which the model sees each sub-view past its window
         self.view_margin = view_margin(model)
+        m = self.view_margin
         self._crop_views = (
-            functools.partial(context_views, reach=config.context_reach)
+            functools.partial(context_views, reach=config.context_reach, origin=(-m, -m),
+                              size=system.sub_view_size + 2 * m)
             if getattr(config, "lens_context", False)
-            else functools.partial(extract_sub_views, margin=self.view_margin)
+            else functools.partial(extract_sub_views, margin=m)
         )
         if pool_window is not None:
             if not hasattr(self.model, "set_pool_window"):

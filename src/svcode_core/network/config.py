@@ -276,6 +276,4 @@ class ModelConfig(BlockConfig):
             raise ConfigError(f"max_width: {self.max_width} is below width {self.width}")
         if self.context_reach != 1 and not self.lens_context:
             raise ConfigError(f"context_reach: {self.context_reach} needs lens_context")
-        if self.view_margin and self.lens_context:
-            raise ConfigError("view_margin: does not combine with lens_context")
         return self

@@ -291,8 +291,6 @@ class PatchDataset(_NoisySamples):
             raise ValueError(f"the model sees {view_margin} px past each sub-view, the dataset "
                              f"{data.path} holds {data.view_margin}: make one with "
                              f"`svcode dataset --view-margin {view_margin}`")  # fmt: skip
-        if view_margin and lens_context:
-            raise ValueError("view_margin and lens_context do not combine")
         self.lens_context, self.context_reach = lens_context, context_reach
         self.view_margin = view_margin
         size = system.sub_view_size + 2 * view_margin
