@@ -23,6 +23,7 @@ from svcode_core.physics.geometry import (
     pad_sensor_frame,
 )
 from svcode_core.training import PatchDataset, TrainConfig, Trainer, generate_dataset
+from svcode_core.training.loss import in_field
 from svcode_core.training.tasks import PatchTask
 
 M = 4  # within the tiny system's kernel margin
@@ -176,3 +177,24 @@ def test_the_reconstructor_runs_the_enlarged_sub_views(tiny_system, lens_context
     middle = (slice(M, M + size),) * 2
     torch.testing.assert_close(torch.from_numpy(result.reconstruction), recon[0, 0][middle])
     torch.testing.assert_close(torch.from_numpy(result.views), demixed[0][(slice(None), *middle)])
+
+
+def test_validation_scores_each_patch_on_its_part_in_the_field(both, tmp_path):
+    """A model that reconstructs the object exactly inside the field and anything past it
+    has a perfect validation score."""
+    _, wide = both
+    config = TrainConfig(epochs=1, batch_size=3, patches_per_epoch=4, val_patches=None)
+    trainer = Trainer(wide, tmp_path, TINY_MODEL.replace(view_margin=M), config,
+                      progress=False)  # fmt: skip
+    outputs = trainer.task.outputs
+
+    def exact(net, batch, system):
+        stages = outputs(net, batch, system)
+        recon, target = stages["recon"]
+        return {**stages, "recon": (target + 0.5 * ~in_field(batch["origin"], target.shape[-1],
+                                                              system.sub_view_size), target)}
+
+    trainer.task.outputs = exact
+    scores = trainer.validate()
+    assert scores["val_recon_psnr"] == pytest.approx(100.0)  # the floor of psnr_per_sample
+    assert scores["val_recon_ssim"] == pytest.approx(1.0)

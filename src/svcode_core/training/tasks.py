@@ -96,6 +96,17 @@ class PatchTask:
         """Context for validation passes: the coordinate-mask cache."""
         return model.cache_masks(max_bytes=_EVAL_MASK_BYTES)
 
+    def field_part(self, batch: dict[str, torch.Tensor], system: SystemConfig
+                   ) -> list[tuple[slice, slice]] | None:  # fmt: skip
+        """Per sample, the rows and columns of its patch that lie inside the field, where
+        its reconstruction is scored; ``None`` when that is every patch whole (no view
+        margin)."""
+        if not self.config.view_margin:
+            return None
+        size, p = system.sub_view_size, batch["object"].shape[-1]
+        return [tuple(slice(max(-o, 0), min(size - o, p)) for o in origin.tolist())
+                for origin in batch["origin"]]  # fmt: skip
+
 
 class FrameTask:
     """A learned baseline (MultiWienerNet or SV-FourierNet) trained on whole frames.
@@ -142,6 +153,10 @@ class FrameTask:
     def evaluating(self, model: nn.Module) -> AbstractContextManager:
         """No state to set up for validation passes."""
         return contextlib.nullcontext()
+
+    def field_part(self, batch: dict[str, torch.Tensor], system: SystemConfig) -> None:
+        """``None``: a whole frame's reconstruction is the field."""
+        return None
 
 
 def training_task(

@@ -377,10 +377,17 @@ class Trainer:
                 n = len(items)
                 values = {"loss": float(loss) * n}
                 gain = batch["gain"].view(-1, 1, 1, 1)  # scored in the frame's own units
+                field = self.task.field_part(batch, self.system)
                 for stage, (prediction, target) in stages.items():
                     prediction, target = prediction / gain, target / gain
-                    values[f"{stage}_psnr"] = float(psnr_per_sample(prediction, target).sum())
-                    values[f"{stage}_ssim"] = float(ssim_per_sample(prediction, target).sum())
+                    pairs = [(prediction, target)]
+                    if stage == "recon" and field is not None:  # each patch's part in the field
+                        pairs = [(prediction[i, None, :, r, c], target[i, None, :, r, c])
+                                 for i, (r, c) in enumerate(field)]
+                    values[f"{stage}_psnr"] = sum(float(psnr_per_sample(*pair).sum())
+                                                  for pair in pairs)  # fmt: skip
+                    values[f"{stage}_ssim"] = sum(float(ssim_per_sample(*pair).sum())
+                                                  for pair in pairs)  # fmt: skip
                 sums += torch.tensor([values[name] for name in names] + [n], dtype=torch.float64)
         sums = all_reduce_sum(sums.to(self._reduce_device), self.dist).cpu()
         count = max(sums[-1].item(), 1.0)
