@@ -198,3 +198,26 @@ def test_resume_names_a_damaged_file_and_what_to_do(tiny_system, tiny_model_conf
             shutil.rmtree(folder)
             shutil.copytree(folder.with_name(folder.name + ".copy"), folder)
     assert main([*args, "--resume"]) == 0  # restored: it resumes
+
+
+def test_a_dataset_with_a_view_margin_trains_a_model_with_it(tiny_system, tiny_model_config,
+                                                             tmp_path, capsys):
+    system_file = tiny_system.save(tmp_path / "tiny.json")
+    data = tmp_path / "data"
+    make = ["dataset", "--system", str(system_file), "--frames", "3", "--out", str(data),
+            "--val-fraction", "0.3", "--no-progress", "--view-margin"]
+    assert main([*make, "-1"]) == 2
+    assert "error: --view-margin: must be >= 0" in capsys.readouterr().err
+    assert main([*make, "4"]) == 0
+    model_file = tmp_path / "model.json"
+    model_file.write_text(tiny_model_config.to_json())
+    train = ["train", "--data", str(data), "--epochs", "1", "--model-config", str(model_file),
+             "--batch-size", "2", "--patches-per-epoch", "2", "--val-patches", "2",
+             "--no-progress", "--out"]
+    assert main([*train, str(tmp_path / "a")]) == 0  # the dataset's margin by default
+    assert main([*train, str(tmp_path / "b"), "--view-margin", "0"]) == 0
+    assert main([*train, str(tmp_path / "c"), "--view-margin", "8"]) == 2
+    assert "svcode dataset --view-margin 8" in capsys.readouterr().err
+    margins = [load_model(tmp_path / run / "best.safetensors")[0].model_config.view_margin
+               for run in "ab"]
+    assert margins == [4, 0]
