@@ -18,16 +18,19 @@ export OMP_NUM_THREADS="${OMP_NUM_THREADS:-2}"
 bundled=src/svcode_core/weights/cm2-mini.safetensors
 # --merge replaces the rows of the methods it runs, by label: when the new model's label
 # differs from the outgoing one's (e.g. it gains the lens context), drop the outgoing rows
+# (the benchmark's, and the ring gap's, labelled "LABEL: cm2-mini.safetensors[, knob]")
 PYTHONPATH=bench python - "$bundled" "$weights" <<'PY'
 import json, sys
 from pathlib import Path
 from svcode_bench.regimes import model_label
 old, new = (model_label(Path(p)) for p in sys.argv[1:])
-report = Path("bench/results/regimes.json")
 if old != new:
-    data = json.loads(report.read_text(encoding="utf-8"))
-    data["rows"] = [row for row in data["rows"] if row["method"] != old]
-    report.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
+    for name, outgoing in (("regimes", lambda m: m == old),
+                           ("ring_gap", lambda m: m.startswith(f"{old}: cm2-mini."))):
+        report = Path(f"bench/results/{name}.json")
+        data = json.loads(report.read_text(encoding="utf-8"))
+        data["rows"] = [row for row in data["rows"] if not outgoing(row["method"])]
+        report.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
 PY
 cp "$weights" "$bundled"
 python bench/precision.py --record

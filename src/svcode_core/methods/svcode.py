@@ -1,7 +1,8 @@
 """Reconstruct raw CM² frames with a trained SV-CoDe model, tile by tile.
 
 :class:`Reconstructor` takes a raw sensor frame ``(H, W)`` (``system.sensor_shape``) or a
-stack ``(T, H, W)``, validates it, zero-pads it, cuts the nine ``S × S`` sub-views, runs
+stack ``(T, H, W)``, validates it, zero-pads it, cuts the nine ``S × S`` sub-views (each
+enlarged by the model's :func:`view_margin`, the field kept in the output), runs
 the model over overlapping tiles (see :mod:`svcode_core.methods.tiling`) and returns the
 reconstruction, optionally the nine demixed views, the time spent in each stage and the
 tile counters.
