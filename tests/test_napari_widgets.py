@@ -740,7 +740,7 @@ def test_the_cost_estimate_tiles_as_the_core_does(qtbot):
         assert cost.detail == f"{2 * per_frame:,} tiles: {per_frame:,} a frame × 2 frames"
         planned = tile_plan(run.model, system, tile_size=tile or None).working_bytes
         assert planned > 0 and cost.memory == 2 * 384**2 * 4 + 2**30 + planned
-    assert per_frame == 127**2  # 7-px tiles at stride 3
+    assert per_frame == 138**2  # 7-px tiles at stride 3 over the sub-view and its 16-px margin
 
 
 def test_cells_sample_reconstructs_with_lsv_admm(qtbot, make_napari_viewer):
@@ -867,10 +867,10 @@ def test_costly_settings_ask_before_running(qtbot, make_napari_viewer, warnings,
     widget = _dock(viewer, ReconstructWidget)
     assert not _shown(widget._warning)
     widget._panel.tile.value = 7
-    assert _shown(widget._warning) and "16,129 tiles" in widget._warning.value
+    assert _shown(widget._warning) and "19,044 tiles" in widget._warning.value
     assert widget.start() is None and widget.worker is None
     cause, fix = warnings[-1].split("\n")[:2]
-    assert "16,129 tiles" in cause and "Reconstruct anyway" in fix
+    assert "19,044 tiles" in cause and "Reconstruct anyway" in fix
     assert widget._run.text == "Reconstruct anyway"
     worker = widget.start()  # the way on: a second press runs it
     assert worker is not None
