@@ -208,6 +208,10 @@ def test_a_dataset_with_a_view_margin_trains_a_model_with_it(tiny_system, tiny_m
             "--val-fraction", "0.3", "--no-progress", "--view-margin"]
     assert main([*make, "-1"]) == 2
     assert "error: --view-margin: must be >= 0" in capsys.readouterr().err
+    assert main([*make, "5"]) == 2  # the tiny system's kernel reaches 4 px
+    assert "error: --view-margin: 5 px is beyond the kernel radius of tiny (4 px)" in \
+        capsys.readouterr().err
+    assert not data.exists()  # refused before anything is written
     assert main([*make, "4"]) == 0
     model_file = tmp_path / "model.json"
     model_file.write_text(tiny_model_config.to_json())

@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
                              "view_margin")}
     with in_option_words(options):
         recipe.validate()
-    data = generate_dataset(args.out, system, recipe, progress=not args.no_progress)
+        data = generate_dataset(args.out, system, recipe, progress=not args.no_progress)
     seconds = data.manifest["seconds"]
     print(f"{data}: simulation took {seconds:.1f} s in all "
           f"({seconds / max(1, len(data)):.2f} s per frame)")

@@ -365,10 +365,15 @@ def generate_dataset(
     Raises
     ------
     ValueError
-        If ``out_dir`` holds a dataset of another system or recipe.
+        If ``out_dir`` holds a dataset of another system or recipe, or the recipe's view
+        margin is beyond the system's kernel radius.
     """
     system = system.validate()
     recipe = recipe.validate()
+    if recipe.view_margin > system.optics.kernel_size // 2:
+        raise ConfigError(f"view_margin: {recipe.view_margin} px is beyond the kernel radius "
+                          f"of {system.name} ({system.optics.kernel_size // 2} px), the "
+                          "farthest a lens's light reaches past its window")
     out = Path(out_dir)
     manifest_path = out / MANIFEST
     size, margin = system.sub_view_size, recipe.view_margin
