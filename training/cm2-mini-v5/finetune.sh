@@ -14,13 +14,30 @@
 #             96 px of the top and bottom as well as the column strips, which with the
 #             edge weight come to 16, as in edge16): do those rows keep their level while
 #             the strips gain?
-# edge16's best epoch is the bundled cm2-mini model (the same weights).
+#   margin16  edge16-long with each lens view running 16 px (the kernel radius) past its
+#             window in both stages and the demixing targets (--view-margin 16): does the
+#             light that the window cuts off win the strips back? edge16-long is its control.
+#   margin16-long  the same over 8 epochs: does the margin's new region need more?
+#   m16-edge32-ring8  4 more epochs of margin16's model (seed 14) with the strips weighted
+#             32 and the ring 8: do the weights move the border further once the views run
+#             past the window?
+#   m16-partial4  4 more epochs of margin16's model (seed 14) with every pixel that some
+#             lens loses off the sensor weighted 4 as well
+# The arms after edge16 start from edge16's best epoch (runs/v5-edge16/best.safetensors:
+# `finetune.sh edge16` makes it again) or from margin16's, the bundled cm2-mini model (the
+# same weights).
 # Resumable over sessions (../resume.sh).
 # Usage (from the repository root): bash training/cm2-mini-v5/finetune.sh ARM
 set -euo pipefail
 arm="$1"
 here="$(cd "$(dirname "$0")" && pwd)"
-edge16="$here/../../src/svcode_core/weights/cm2-mini.safetensors"
+edge16=runs/v5-edge16/best.safetensors
+margin16="$here/../../src/svcode_core/weights/cm2-mini.safetensors"
+case "$arm" in
+  edge16-long|edge32-ring8|margin16|margin16-long)
+    [ -f "$edge16" ] || { echo "finetune.sh $arm starts from $edge16: run the edge16 arm first" >&2
+                          exit 2; };;
+esac
 case "$arm" in
   zeros) extra=();;
   reflect) extra=(--padding reflect);;
@@ -31,8 +48,12 @@ case "$arm" in
   margin16) extra=(--edge-weight 16 --seed 13 --init "$edge16"); export MARGIN=16;;
   margin16-long) extra=(--edge-weight 16 --seed 13 --init "$edge16" --epochs 8)
     export MARGIN=16;;
+  m16-edge32-ring8) extra=(--edge-weight 32 --ring-weight 8 --seed 14 --init "$margin16")
+    export MARGIN=16;;
+  m16-partial4) extra=(--edge-weight 16 --partial-weight 4 --seed 14 --init "$margin16")
+    export MARGIN=16;;
   *) echo "finetune.sh: zeros, reflect, edge16, edge16-long, edge32-ring8, partial4," \
-       "margin16 or margin16-long" >&2
+       "margin16, margin16-long, m16-edge32-ring8 or m16-partial4" >&2
      exit 2;;
 esac
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
