@@ -157,9 +157,11 @@ class CM2Operator:
         m = self.margin
         return torch.nn.functional.pad(x, (m, m, m, m))
 
-    def _shrink(self, x: torch.Tensor) -> torch.Tensor:
-        m = self.margin
-        return x[..., m : x.shape[-2] - m, m : x.shape[-1] - m]
+    def _shrink(self, x: torch.Tensor, past: int = 0) -> torch.Tensor:
+        """The enlarged grid cut down to the sub-view, or to the sub-view enlarged by
+        ``past``."""
+        cut = self.margin - past
+        return x[..., cut : x.shape[-2] - cut, cut : x.shape[-1] - cut]
 
     def lens_blur(self, x: torch.Tensor) -> torch.Tensor:
         """The nine blurred lens images on the enlarged grid, ``(..., 9, S+2m, S+2m)``."""
@@ -223,8 +225,7 @@ class CM2Operator:
                              f"got {past!r}")  # fmt: skip
         else:
             on_sensor = sensor_coverage(self.system, blur.dtype, blur.device, margin=past)
-        cut = self.margin - past
-        return blur[..., cut : blur.shape[-2] - cut, cut : blur.shape[-1] - cut] * on_sensor
+        return self._shrink(blur, past) * on_sensor
 
 
 @dataclass(frozen=True)
