@@ -74,6 +74,28 @@ def test_dataset_with_departures_resumes_to_the_same_data(tiny_system, tmp_path,
     assert TrainingData(tmp_path / "resumed").frame_departures(2) == whole.frame_departures(2)
 
 
+def test_several_processes_write_the_same_data(tiny_system, tmp_path):
+    """workers=2: blocks of instrument draws in two processes, out of order, resumed from
+    the middle of a block; every stored array equals one process's."""
+    plan = dataclasses.replace(recipe(tiny_system), frames=5, view_margin=2)
+    serial = generate_dataset(tmp_path / "serial", tiny_system, plan, progress=False)
+    partial = tmp_path / "parallel"
+    generate_dataset(partial, tiny_system, plan, progress=False)
+    manifest = json.loads((partial / "manifest.json").read_text())
+    manifest["count"] = 1  # as if interrupted after frame 0: frames 1-4 are written again
+    (partial / "manifest.json").write_text(json.dumps(manifest))
+    for name in ("views", "demixed", "objects"):
+        stored = np.lib.format.open_memmap(partial / f"{name}.npy", mode="r+")
+        stored[1:] = np.nan
+        stored.flush()
+    parallel = generate_dataset(partial, tiny_system, plan, progress=False, workers=2)
+    assert json.loads((partial / "manifest.json").read_text())["count"] == 5
+    for name in ("views", "demixed", "objects"):
+        np.testing.assert_array_equal(getattr(parallel, name), getattr(serial, name))
+    with pytest.raises(ValueError, match="workers"):
+        generate_dataset(tmp_path / "x", tiny_system, plan, Simulator(tiny_system), workers=2)
+
+
 def test_cli_dataset_departures(tiny_system, tmp_path, capsys):
     from svcode_core.cli import main
 

@@ -48,6 +48,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="storage of the arrays: float16 halves the disk (a cm2-v2 "
                         "frame's arrays take 438 MB in float32), rounding them by 2^-11; "
                         "the trainer reads float32 (default: float32)")  # fmt: skip
+    parser.add_argument("--workers", type=int, default=1, metavar="N",
+                        help="processes simulating frames side by side, one thread each "
+                        "(the same frames as one process; default 1)")
     parser.add_argument("--view-margin", type=int, default=0, metavar="PX",
                         help="store the sub-views and demixing targets PX pixels past each "
                         "window, for SV-CoDe models trained with --view-margin (at most the "
@@ -69,10 +72,11 @@ def run(args: argparse.Namespace) -> int:
                         view_margin=args.view_margin)
     options = {field: "--" + field.replace("_", "-")
                for field in ("frames", "seed", "val_fraction", "instrument_frames",
-                             "view_margin")}
+                             "view_margin", "workers")}
     with in_option_words(options):
         recipe.validate()
-        data = generate_dataset(args.out, system, recipe, progress=not args.no_progress)
+        data = generate_dataset(args.out, system, recipe, progress=not args.no_progress,
+                                workers=args.workers)
     seconds = data.manifest["seconds"]
     print(f"{data}: simulation took {seconds:.1f} s in all "
           f"({seconds / max(1, len(data)):.2f} s per frame)")

@@ -13,10 +13,12 @@ A dataset folder holds
   train/validation split and ``count``, the number of frames written so far.
 
 Arrays are float32 ``.npy`` files opened with :func:`numpy.lib.format.open_memmap`, so
-training reads only the patches it needs. Frames are written in order and ``count`` is
-updated atomically (temporary file + :func:`os.replace`) after each frame is flushed, so an
-interrupted generation resumes at the first missing frame and never trusts a half-written
-one. Frame ``i`` depends only on ``(seed, i)``: a resumed dataset equals an uninterrupted one.
+training reads only the patches it needs. ``count``, the frames written without a gap from
+the first, is updated atomically (temporary file + :func:`os.replace`) after each frame is
+flushed (each block of ``instrument_frames`` frames when several processes simulate side by
+side, ``workers``), so an interrupted generation resumes at the first missing frame and
+never trusts a half-written one. Frame ``i`` depends only on ``(seed, i)``: a resumed or
+parallel dataset equals one written in one go.
 
 With ``DataRecipe.departures`` (domain randomisation) every frame comes from its own draw
 of the true instrument (:func:`frame_departures`): the optics are drawn once per block of
@@ -31,7 +33,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import multiprocessing
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -343,6 +347,7 @@ def generate_dataset(
     recipe: DataRecipe,
     simulator: Simulator | None = None,
     progress: bool = True,
+    workers: int = 1,
 ) -> TrainingData:
     """Simulate ``recipe.frames`` noiseless frames into ``out_dir`` (or finish a partial one).
 
@@ -354,9 +359,13 @@ def generate_dataset(
     system : SystemConfig
     recipe : DataRecipe
     simulator : Simulator, optional
-        Default ``Simulator(system)`` (pupil-model optics).
+        Default ``Simulator(system)`` (pupil-model optics); with ``workers > 1`` each
+        process builds its own default one.
     progress : bool
         Show a progress bar.
+    workers : int
+        Processes simulating blocks of ``recipe.instrument_frames`` frames side by side,
+        one thread each; the frames are the same as from one process.
 
     Returns
     -------
@@ -370,15 +379,17 @@ def generate_dataset(
     """
     system = system.validate()
     recipe = recipe.validate()
+    check_int("workers", workers, 1)
+    if workers > 1 and simulator is not None:
+        raise ValueError("workers: each process builds its own simulator; give either "
+                         "a simulator or several workers")  # fmt: skip
     if recipe.view_margin > system.optics.kernel_size // 2:
         raise ConfigError(f"view_margin: {recipe.view_margin} px is beyond the kernel radius "
                           f"of {system.name} ({system.optics.kernel_size // 2} px), the "
                           "farthest a lens's light reaches past its window")
     out = Path(out_dir)
     manifest_path = out / MANIFEST
-    size, margin = system.sub_view_size, recipe.view_margin
-    enlarged = (recipe.frames, N_LENSES, size + 2 * margin, size + 2 * margin)
-    shapes = {"views": enlarged, "demixed": enlarged, "objects": (recipe.frames, size, size)}
+    shapes = _shapes(system, recipe)
     itemsize = np.dtype(recipe.dtype).itemsize
     if not manifest_path.is_file():
         require_space({out: sum(itemsize * int(np.prod(shape)) + 4096
@@ -392,11 +403,11 @@ def generate_dataset(
                 f"{out} already holds a dataset of another system or recipe "
                 f"({stored_system.name}, {manifest.get('recipe')}); choose a new folder"
             )
-        arrays = _open_arrays(out, shapes, create=False, dtype=recipe.dtype)
+        _open_arrays(out, shapes, create=False, dtype=recipe.dtype)
     else:
         train, val = split_frames(recipe.frames, recipe.val_fraction, recipe.seed)
         system.save(out / SYSTEM)
-        arrays = _open_arrays(out, shapes, create=True, dtype=recipe.dtype)
+        _open_arrays(out, shapes, create=True, dtype=recipe.dtype)
         manifest = {
             "format": DATA_FORMAT,
             "system": system.name,
@@ -416,23 +427,86 @@ def generate_dataset(
         write_json_atomic(manifest_path, manifest)
     start, spent = manifest["count"], manifest["seconds"]
     if start < recipe.frames:
-        simulator = simulator or Simulator(system)
+        # one process writes frame after frame; several take blocks of frames sharing one
+        # instrument draw, so each builds a forward model once per block, as one process does
+        step = 1 if workers == 1 else recipe.instrument_frames
+        blocks, low = [], start
+        while low < recipe.frames:
+            high = min(recipe.frames, (low // step + 1) * step)
+            blocks.append((low, high))
+            low = high
         clock = time.perf_counter()
-        for index in tqdm(range(start, recipe.frames), initial=start, total=recipe.frames,
-                          desc="simulate frames", disable=not progress):
-            obj = training_object(recipe, index, size)
-            departures = frame_departures(recipe, index)
-            if departures is not None:  # reuses the forward model within a block
-                simulator = simulator.with_departures(departures)
-            scene = simulator.simulate(obj, seed=0, noise=False, margin=margin)
-            arrays["views"][index] = scene.views
-            arrays["demixed"][index] = scene.demixed
-            arrays["objects"][index] = scene.object
-            for array in arrays.values():
-                array.flush()
-            manifest["count"] = index + 1
+        ends: dict[int, int] = {}  # first frame -> end of each block written
+
+        def finished(block: tuple[int, int]) -> None:
+            """Count the frames written without a gap (a resumed run trusts those)."""
+            ends[block[0]] = block[1]
+            while manifest["count"] in ends:
+                manifest["count"] = ends[manifest["count"]]
             manifest["seconds"] = round(spent + time.perf_counter() - clock, 3)
             write_json_atomic(manifest_path, manifest)
-    del arrays
+            bar.update(block[1] - block[0])
+
+        with tqdm(initial=start, total=recipe.frames, desc="simulate frames",
+                  disable=not progress) as bar:  # fmt: skip
+            if workers == 1:
+                simulator = simulator or Simulator(system)
+                for block in blocks:
+                    simulator = _simulate_block(out, system, recipe, block, simulator)
+                    finished(block)
+            else:
+                _simulate_in_processes(out, system, recipe, blocks, workers, finished)
     return TrainingData(out)
+
+
+def _shapes(system: SystemConfig, recipe: DataRecipe) -> dict[str, tuple[int, ...]]:
+    size, margin = system.sub_view_size, recipe.view_margin
+    enlarged = (recipe.frames, N_LENSES, size + 2 * margin, size + 2 * margin)
+    return {"views": enlarged, "demixed": enlarged, "objects": (recipe.frames, size, size)}
+
+
+def _simulate_block(out: Path, system: SystemConfig, recipe: DataRecipe,
+                    block: tuple[int, int], simulator: Simulator) -> Simulator:
+    """Simulate frames ``block[0]`` to ``block[1] - 1`` into the stored arrays (flushed);
+    returns the simulator of the block's instrument, for the next block to start from."""
+    arrays = _open_arrays(out, _shapes(system, recipe), create=False, dtype=recipe.dtype)
+    for index in range(*block):
+        obj = training_object(recipe, index, system.sub_view_size)
+        departures = frame_departures(recipe, index)
+        if departures is not None:  # reuses the forward model within a block
+            simulator = simulator.with_departures(departures)
+        scene = simulator.simulate(obj, seed=0, noise=False, margin=recipe.view_margin)
+        arrays["views"][index] = scene.views
+        arrays["demixed"][index] = scene.demixed
+        arrays["objects"][index] = scene.object
+    for array in arrays.values():
+        array.flush()
+    return simulator
+
+
+_WORKER_SIMULATOR: Simulator | None = None
+
+
+def _worker_block(out: Path, system: SystemConfig, recipe: DataRecipe,
+                  block: tuple[int, int]) -> tuple[int, int]:
+    global _WORKER_SIMULATOR
+    torch.set_num_threads(1)
+    _WORKER_SIMULATOR = _simulate_block(out, system, recipe, block,
+                                        _WORKER_SIMULATOR or Simulator(system))
+    return block
+
+
+def _simulate_in_processes(out: Path, system: SystemConfig, recipe: DataRecipe,
+                           blocks: list[tuple[int, int]], workers: int, finished) -> None:
+    """The blocks in ``workers`` processes; ``finished(block)`` as each one is written.
+    An error or an interruption cancels the blocks not yet started."""
+    context = multiprocessing.get_context("spawn")  # no forked copy of torch's thread pools
+    with ProcessPoolExecutor(workers, mp_context=context) as pool:
+        futures = [pool.submit(_worker_block, out, system, recipe, block) for block in blocks]
+        try:
+            for future in as_completed(futures):
+                finished(future.result())
+        except BaseException:
+            pool.shutdown(wait=True, cancel_futures=True)
+            raise
 
