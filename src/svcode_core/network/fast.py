@@ -123,8 +123,7 @@ class FoldedMasks:
             shapes = [(mlp.lenses, 2 * c)] + [(mlp.lenses, c)] * 4
             pixel_bytes = mlp.lenses * (mlp.w_out.shape[-1] + 8 * c) * mlp.w_out.element_size()
             return from_field(grid, self.name, compute, shapes, pixel_bytes, dtype)
-        tiles = grid.tile_masks(compute(grid.enc_row, grid.enc_col), channels_last)
-        return [tuple(m.to(dtype) for m in masks) for masks in tiles]
+        return grid.tile_masks(compute(grid.enc_row, grid.enc_col), channels_last, dtype)
 
 
 def _conv(conv: nn.Conv2d, x: torch.Tensor) -> torch.Tensor:

@@ -78,17 +78,22 @@ class CoordGrid:
         """Whether masks come from the cache (a cache is set and no gradient is needed)."""
         return self.cache is not None and not torch.is_grad_enabled()
 
-    def tile_masks(self, masks: Masks, channels_last: bool = True) -> list[Masks]:
+    def tile_masks(self, masks: Masks, channels_last: bool = True,
+                   dtype: torch.dtype | None = None) -> list[Masks]:  # fmt: skip
         """Per tile, its masks ``(lenses, C, h, w)`` from masks ``(U, lenses, C, ., .)``
         computed at ``enc_row`` and ``enc_col``: interpolated from the lattice nodes when
         ``lattice`` is set (in the features' layout; without gradient, large ones as
-        :class:`~.lattice.RowInterpolant`), and repeated for tiles that share an origin."""
+        :class:`~.lattice.RowInterpolant`), converted to ``dtype`` if given, and repeated
+        for tiles that share an origin (the same object, so they broadcast, not copy)."""
         if self.lattice is None:
-            return self.per_tile(list(zip(*masks, strict=True)))
-        lattice = interpolate_once if not torch.is_grad_enabled() else interpolate
-        return self.per_tile(
-            list(zip(*(lattice(m, *self.lattice, channels_last) for m in masks), strict=True))
-        )
+            per_origin = list(zip(*masks, strict=True))
+        else:
+            lattice = interpolate_once if not torch.is_grad_enabled() else interpolate
+            per_origin = list(zip(*(lattice(m, *self.lattice, channels_last) for m in masks),
+                                  strict=True))  # fmt: skip
+        if dtype is not None:
+            per_origin = [tuple(m.to(dtype) for m in origin) for origin in per_origin]
+        return self.per_tile(per_origin)
 
     def per_tile(self, per_origin: list) -> list:
         """Values per distinct origin repeated for the tiles that share it."""
