@@ -489,6 +489,7 @@ _WORKER_SIMULATOR: Simulator | None = None
 
 def _worker_block(out: Path, system: SystemConfig, recipe: DataRecipe,
                   block: tuple[int, int]) -> tuple[int, int]:
+    """One block in a worker process, its simulator kept for the process's next block."""
     global _WORKER_SIMULATOR
     torch.set_num_threads(1)
     _WORKER_SIMULATOR = _simulate_block(out, system, recipe, block,
@@ -509,4 +510,3 @@ def _simulate_in_processes(out: Path, system: SystemConfig, recipe: DataRecipe,
         except BaseException:
             pool.shutdown(wait=True, cancel_futures=True)
             raise
-
