@@ -200,12 +200,13 @@ def _lerp_axis(t: torch.Tensor, position: torch.Tensor, dim: int, nodes: int) ->
     weights = (position - below).to(t.device, t.dtype)
     below = below.long().to(t.device)
     if t.requires_grad and torch.is_grad_enabled():
-        shape = [-1 if d == dim - 1 else 1 for d in range(t.ndim - 1)]  # a tile's dims
-        return torch.stack([
-            torch.lerp(t[tile].index_select(dim - 1, index),
-                       t[tile].index_select(dim - 1, index + 1), weights[tile].view(shape))
-            for tile, index in enumerate(below)
-        ])
+        # every tile at once: each tile's node indices broadcast over its other dims, the
+        # upper tap gathered from the nodes shifted by one (no index tensor of that size)
+        shape = [1] * t.ndim
+        shape[0], shape[dim] = below.shape
+        index = below.view(shape).expand(*t.shape[:dim], below.shape[1], *t.shape[dim + 1 :])
+        upper = t.narrow(dim, 1, nodes - 1)
+        return torch.lerp(t.gather(dim, index), upper.gather(dim, index), weights.view(shape))
     # written in place, one lens at a time: the only temporary is one lens's second tap
     shape = [-1 if d == dim - 2 else 1 for d in range(t.ndim - 2)]  # a lens's dims
     out = t.new_empty(*t.shape[:dim], position.shape[1], *t.shape[dim + 1 :])
