@@ -3,8 +3,10 @@
 Every file must hold the same network (same configuration, same parameter names and
 shapes): runs fine-tuned from one starting point stay close enough in weight space that
 their mean is a model of its own, often better on data none of them was tuned for. The
-output keeps the first file's metadata (its configuration, system and measured tile
-overlap) and records the ingredients under ``extra``.
+output keeps the first file's network and system; the training record and the checks
+measured on one model (its bf16 precision check) are left out, the ingredients recorded
+under ``extra`` instead: measure the soup before trusting it (``bench/precision.py
+--record`` for its precision).
 
 Usage (from the repository root):
     python training/soup.py A.safetensors B.safetensors [...] --out SOUP.safetensors
@@ -28,7 +30,8 @@ def load(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
 
 def soup(paths: list[Path]) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
     """The mean of the files' floating-point tensors (in float64, stored in each tensor's
-    own dtype) and the first file's metadata, with the ingredients named in ``extra``."""
+    own dtype) and the first file's metadata, its ``extra`` reduced to the system, the
+    network and the ingredients."""
     first, metadata = load(paths[0])
     total = {key: value.double() for key, value in first.items() if value.is_floating_point()}
     for path in paths[1:]:
@@ -43,7 +46,8 @@ def soup(paths: list[Path]) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
             total[key] += tensors[key].double()
     mean = {key: (total[key] / len(paths)).to(value.dtype) if key in total else value
             for key, value in first.items()}
-    extra = json.loads(metadata.get("extra", "{}") or "{}")
+    first_extra = json.loads(metadata.get("extra", "{}") or "{}")
+    extra = {key: first_extra[key] for key in ("system", "model_config") if key in first_extra}
     extra["soup"] = [path.name if path.parent.name == "weights" else str(path) for path in paths]
     return mean, {**metadata, "extra": json.dumps(extra)}
 
