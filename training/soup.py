@@ -1,12 +1,11 @@
 """Average the weights of several fine-tunings of one model (a uniform model soup).
 
-Every file must hold the same network (same configuration, same parameter names and
-shapes): runs fine-tuned from one starting point stay close enough in weight space that
-their mean is a model of its own, often better on data none of them was tuned for. The
-output keeps the first file's network and system; the training record and the checks
-measured on one model (its bf16 precision check) are left out, the ingredients recorded
-under ``extra`` instead: measure the soup before trusting it (``bench/precision.py
---record`` for its precision).
+Every file must hold the same network for the same system: runs fine-tuned from one
+starting point stay close enough in weight space that their mean is a model of its own,
+often better on data none of them was tuned for. The output is written like any model
+file (``save_model``); the training records and the checks measured on one model (its
+bf16 precision check) are left out, the ingredients recorded under ``extra`` instead:
+measure the soup before trusting it (``bench/precision.py --record`` for its precision).
 
 Usage (from the repository root):
     python training/soup.py A.safetensors B.safetensors [...] --out SOUP.safetensors
@@ -15,41 +14,29 @@ Usage (from the repository root):
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import torch
-from safetensors import safe_open
-from safetensors.torch import save_file
+
+from svcode_core.config import SystemConfig
+from svcode_core.methods.model_file import load_model, save_model
 
 
-def load(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
-    with safe_open(str(path), "pt") as file:
-        return {key: file.get_tensor(key) for key in file.keys()}, file.metadata() or {}
-
-
-def soup(paths: list[Path]) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
-    """The mean of the files' floating-point tensors (in float64, stored in each tensor's
-    own dtype) and the first file's metadata, its ``extra`` reduced to the system, the
-    network and the ingredients."""
-    first, metadata = load(paths[0])
-    total = {key: value.double() for key, value in first.items() if value.is_floating_point()}
-    for path in paths[1:]:
-        tensors, other = load(path)
-        same_network = other.get("model_config") == metadata.get("model_config")
-        if not same_network or tensors.keys() != first.keys():
-            raise SystemExit(f"soup: {path} holds another network than {paths[0]}")
-        for key in total:
-            if tensors[key].shape != first[key].shape:
-                raise SystemExit(f"soup: {key} is {tuple(tensors[key].shape)} in {path}, "
-                                 f"{tuple(first[key].shape)} in {paths[0]}")
-            total[key] += tensors[key].double()
-    mean = {key: (total[key] / len(paths)).to(value.dtype) if key in total else value
-            for key, value in first.items()}
-    first_extra = json.loads(metadata.get("extra", "{}") or "{}")
-    extra = {key: first_extra[key] for key in ("system", "model_config") if key in first_extra}
-    extra["soup"] = [path.name if path.parent.name == "weights" else str(path) for path in paths]
-    return mean, {**metadata, "extra": json.dumps(extra)}
+def soup(paths: list[Path]) -> tuple[torch.nn.Module, SystemConfig]:
+    """The first file's network with the mean of every file's floating-point tensors (in
+    float64, stored in each tensor's own dtype), and its system."""
+    models = [load_model(path) for path in paths]  # each file checked against its config
+    model, system = models[0]
+    for path, (other, other_system) in zip(paths[1:], models[1:], strict=True):
+        if other.model_config != model.model_config or other_system != system:
+            raise SystemExit(f"soup: {path} holds another network or system than {paths[0]}")
+    states = [other.state_dict() for other, _ in models]
+    model.load_state_dict({
+        key: (sum(state[key].double() for state in states) / len(states)).to(value.dtype)
+        if value.is_floating_point() else value
+        for key, value in states[0].items()
+    })
+    return model, system
 
 
 def main() -> None:
@@ -59,10 +46,11 @@ def main() -> None:
     args = parser.parse_args()
     if len(args.weights) < 2:
         parser.error("give at least two model files")
-    tensors, metadata = soup(args.weights)
+    model, system = soup(args.weights)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    save_file({key: value.contiguous() for key, value in tensors.items()}, str(args.out),
-              metadata=metadata)
+    ingredients = [path.name if path.parent.name == "weights" else str(path)
+                   for path in args.weights]  # fmt: skip
+    save_model(args.out, model, system, extra={"soup": ingredients})
     print(f"{args.out}: the mean of {len(args.weights)} models")
 
 

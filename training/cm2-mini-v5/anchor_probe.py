@@ -63,12 +63,11 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     weights = bundled_weights("cm2-mini")
-    model, _ = load_model(weights)
     reference, _ = load_model(weights)
     config = TrainConfig(epochs=args.epochs, batch_size=8, same_origin=8, lr=2e-4,
                          warmup_steps=100, beta=100.0, edge_weight=32.0, ring_weight=8.0,
                          patches_per_epoch=args.patches, val_patches=128, seed=14)
-    trainer = AnchoredTrainer(TrainingData(args.data), args.run, model.model_config, config,
+    trainer = AnchoredTrainer(TrainingData(args.data), args.run, reference.model_config, config,
                               progress=False, init_weights=weights, reference=reference,
                               weight=args.anchor_weight)  # fmt: skip
     trainer.fit(resume=(args.run / "checkpoints" / "latest.json").is_file())
