@@ -12,10 +12,8 @@
 set -uo pipefail
 out="$1"
 mkdir -p "$out"
-PYTHON=${PYTHON:-$(command -v python3)}
-site=/tmp/svcode-site
-"$PYTHON" -m pip install -q --upgrade --no-index --no-deps --target "$site" bench/gpu-wheels/*.whl
-export PYTHONPATH="$PWD/src:$PWD/bench:$site${PYTHONPATH:+:$PYTHONPATH}"
+source bench/gpu_env.sh
+export PYTHONPATH="$PWD/bench:$PYTHONPATH"
 svcode() { "$PYTHON" -m svcode_core.cli "$@"; }
 cpu() {  # CPU seconds (user + system), wall seconds and peak RSS of a command
   "$PYTHON" - "$@" <<'EOF'

@@ -5,36 +5,14 @@
 # GPU_CHECK_LIMIT seconds (default 450) in any case, its report written section by section.
 # Without CUDA it checks that every CUDA code path refuses cleanly instead.
 #
-# The GPU machine has no network: the code runs from src/ (PYTHONPATH, no build step) and
-# the few pure-Python packages it may lack come from bench/gpu-wheels/ (fill it beforehand
-# with bash bench/gpu_wheels.sh; the folder is ignored by git, so carry it along).
+# The GPU machine has no network: bench/gpu_env.sh runs the code from src/ and installs the
+# few pure-Python packages it may lack from bench/gpu-wheels/ (fill it beforehand with bash
+# bench/gpu_wheels.sh; the folder is ignored by git, so carry it along).
 #
 # Usage: bash bench/gpu_check.sh [bench/gpu_check.py options, e.g. --out "$OUT/gpu.md"]
 set -uo pipefail
 cd "$(dirname "$0")/.."
-PYTHON=${PYTHON:-$(command -v python || command -v python3)}
-export PYTHONPATH="$PWD/src${PYTHONPATH:+:$PYTHONPATH}"
-
-# import name:distribution of what the check imports beyond the machine's own packages
-missing=()
-for pair in tqdm:tqdm pytorch_msssim:pytorch-msssim; do
-    "$PYTHON" -c "import ${pair%%:*}" 2>/dev/null || missing+=("${pair#*:}")
-done
-if ((${#missing[@]})); then
-    site=$(mktemp -d "${TMPDIR:-/tmp}/gpu-check-site.XXXXXX")
-    trap 'rm -rf "$site"' EXIT
-    echo "installing ${missing[*]} from bench/gpu-wheels/ into $site"
-    if ! "$PYTHON" -m pip install --quiet --no-index --no-deps --find-links bench/gpu-wheels \
-            --target "$site" "${missing[@]}"; then
-        echo "pip could not install them; unpacking the wheels instead"
-        for name in "${missing[@]}"; do
-            for wheel in bench/gpu-wheels/"${name//-/_}"-*.whl; do
-                [ -f "$wheel" ] && "$PYTHON" -m zipfile -e "$wheel" "$site"
-            done
-        done
-    fi
-    export PYTHONPATH="$site:$PYTHONPATH"
-fi
+source bench/gpu_env.sh
 
 command -v nvidia-smi >/dev/null && nvidia-smi -L
 "$PYTHON" -c 'import torch; print("torch", torch.__version__, "| CUDA available:",

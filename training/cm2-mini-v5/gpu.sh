@@ -13,9 +13,9 @@
 # (svcode dataset --workers) while the GPU check runs, and the arms' epochs are sized to the
 # time left, so the cosine schedule ends inside the budget. Each arm's best weights and log.csv land in
 # OUT, with the GPU check's report (gpu.md): seven files.
-# Runs from the source tree (no install): the machine needs torch, numpy, scipy,
-# scikit-image, tifffile, safetensors and matplotlib; tqdm and pytorch-msssim come from
-# bench/gpu-wheels/ (bash bench/gpu_wheels.sh).
+# Runs from the source tree (no install; bench/gpu_env.sh): the machine needs torch, numpy,
+# scipy, scikit-image, tifffile, safetensors and matplotlib; tqdm and pytorch-msssim come
+# from bench/gpu-wheels/ (bash bench/gpu_wheels.sh).
 # Usage (from the repository root): bash training/cm2-mini-v5/gpu.sh OUT SECONDS
 # (a smoke test of this script on a CPU: DEVICE=cpu FRAMES=24 PATCHES=64 ... OUT 300)
 set -uo pipefail
@@ -24,10 +24,7 @@ start=$(date +%s)
 left() { echo $((budget - ($(date +%s) - start))); }
 mkdir -p "$out"
 here="$(cd "$(dirname "$0")" && pwd)"
-PYTHON=${PYTHON:-$(command -v python3)}
-site=/tmp/svcode-site
-"$PYTHON" -m pip install -q --upgrade --no-index --no-deps --target "$site" bench/gpu-wheels/*.whl
-export PYTHONPATH="$PWD/src:$site${PYTHONPATH:+:$PYTHONPATH}"
+source bench/gpu_env.sh
 export OMP_WAIT_POLICY=PASSIVE
 svcode() { "$PYTHON" -m svcode_core.cli "$@"; }
 nvidia-smi -L; lscpu | grep -E "^Model name|^CPU\(s\)"
