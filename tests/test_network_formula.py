@@ -8,9 +8,7 @@ The reference here is written from the formulas and a state dict alone, in float
 * coordinates: pixel ``i`` of a tile at level-0 origin ``o`` on U-Net level ``k`` is the
   mean of the ``2^k`` level-0 pixels it pools, ``t = 2 (o + 2^k i + (2^k - 1)/2)/(S-1) - 1``;
 * encoding ``γ(t) = [sin(f_0 π t), cos(f_0 π t), ...]`` with ``f_k = 2^k`` ("paper") or
-  ``0.5 (k + 1)`` ("code"), and with edge features of width ``w`` also
-  ``sigmoid(-d₀/w), sigmoid(-d₁/w)`` for ``d₀ = (t + 1)(S - 1)/2`` pixels from the first
-  edge and ``d₁ = S - 1 - d₀`` from the last;
+  ``0.5 (k + 1)`` ("code");
 * CoordGate ``M(r) ⊙ (W ∗ F)`` with ``M(v, u) = sigmoid(W₂ relu(W₁ [γ(v), γ(u)] + b₁) + b₂)``
   evaluated per pixel (no row/column split);
 * the NAFNet block ``y = x + β ⊙ M₃⊙conv3(SCA(SG(M₂⊙conv2(M₁⊙conv1(LN x)))))``,
@@ -49,22 +47,15 @@ LENSES = 9
 # ----------------------------------------------------------------------------- reference
 
 
-def encode(t: torch.Tensor, config: ModelConfig, size: int) -> torch.Tensor:
-    """γ of coordinates ``(n,)``: ``(n, 2 bands)``, sin and cos interleaved per band, then
-    the two edge features if the configuration has them."""
-    bands = config.pe_bands
+def encode(t: torch.Tensor, bands: int, scheme: str) -> torch.Tensor:
+    """γ of coordinates ``(n,)``: ``(n, 2 bands)``, sin and cos interleaved per band."""
     freq = (
         [2.0**k for k in range(bands)]
-        if config.pe_scheme == "paper"
+        if scheme == "paper"
         else [0.5 * (k + 1) for k in range(bands)]
     )
     angle = math.pi * t[:, None] * torch.tensor(freq, dtype=F64)
-    out = torch.stack((angle.sin(), angle.cos()), -1).flatten(1)
-    if not config.edge_width:
-        return out
-    first = (t + 1) * (size - 1) / 2
-    edges = torch.stack((first, size - 1 - first), -1)
-    return torch.cat((out, torch.sigmoid(-edges / config.edge_width)), 1)
+    return torch.stack((angle.sin(), angle.cos()), -1).flatten(1)
 
 
 def pixel_coords(origin: int, n: int, level: int, size: int) -> torch.Tensor:
@@ -90,13 +81,11 @@ def mlp_masks(
     rows: torch.Tensor,
     cols: torch.Tensor,
     config: ModelConfig,
-    size: int,
     bound: bool = False,
 ):
-    """``M`` ``(lenses, C, h, w)`` of one gate at every (row, col) pair of an ``S = size``
-    sub-view; with ``bound`` also a float32 forward-error bound of the masks (see
-    :func:`test_gated_convolution`)."""
-    enc = [encode(t, config, size) for t in (rows, cols)]
+    """``M`` ``(lenses, C, h, w)`` of one gate at every (row, col) pair; with ``bound``
+    also a float32 forward-error bound of the masks (see :func:`test_gated_convolution`)."""
+    enc = [encode(t, config.pe_bands, config.pe_scheme) for t in (rows, cols)]
     h, w, e = rows.numel(), cols.numel(), enc[0].shape[1]
     features = torch.cat((enc[0][:, None].expand(h, w, e), enc[1][None].expand(h, w, e)), -1)
     w1 = torch.cat((P[f"{gate}.mlp.w_row"], P[f"{gate}.mlp.w_col"]), -1)  # (L, H, 2E)
@@ -126,13 +115,13 @@ def block_masks(P: dict, block: str, config: ModelConfig, level: int, origin, sh
     gates = [f"{block}.conv{i}" for i in range(1, 6)]
     if not config.mask_spacing:
         rows, cols = (pixel_coords(origin[a], n[a], level, size) for a in (0, 1))
-        return [mlp_masks(P, gate, rows, cols, config, size) for gate in gates]
+        return [mlp_masks(P, gate, rows, cols, config) for gate in gates]
     (wr, rows), (wc, cols) = (
         lattice_weights(origin[a], n[a], level, config.mask_spacing, size) for a in (0, 1)
     )
     out = []
     for gate in gates:
-        m = mlp_masks(P, gate, rows, cols, config, size)
+        m = mlp_masks(P, gate, rows, cols, config)
         if gate[-1] in "24":
             half = m.shape[1] // 2
             m = m[:, :half] * m[:, half:]
@@ -245,8 +234,6 @@ SMALL = ModelConfig(
 # sigmoid outputs: random weights with clamped linear outputs give all-zero tiles (the
 # trained model covers "linear")
 LATTICE = SMALL.replace(mask_spacing=8, pe_scheme="code", lens_context=True)
-EDGES = LATTICE.replace(edge_width=4)  # the masks change within pixels of the border
-CONFIGS = {"exact": SMALL, "lattice": LATTICE, "edges": EDGES}
 # aligned: multiples of the stride and the spacing (the up-sampling route of the lattice,
 # tiles cropped from the cached field); unaligned: neither, one tile partly outside the
 # sub-view, one origin twice (tiles sharing one mask computation)
@@ -331,7 +318,7 @@ def test_gated_convolution(block, level, layer, monkeypatch):
     masks, e_masks = [], []
     for origin in origins:
         rows, cols = (pixel_coords(origin[a], x.shape[2 + a], level, S) for a in (0, 1))
-        m, e = mlp_masks(P, name, rows, cols, SMALL, S, bound=True)
+        m, e = mlp_masks(P, name, rows, cols, SMALL, bound=True)
         masks.append(m)
         e_masks.append(e)
     masks, e_masks = torch.stack(masks), torch.stack(e_masks)
@@ -360,7 +347,7 @@ def _block_input(model, name: str, level: int, tiles: int, shape) -> tuple:
 
 @pytest.mark.parametrize("path", PATHS)
 @pytest.mark.parametrize("origins", ORIGINS.values(), ids=ORIGINS.keys())
-@pytest.mark.parametrize("config", CONFIGS.values(), ids=CONFIGS.keys())
+@pytest.mark.parametrize("config", [SMALL, LATTICE], ids=["exact", "lattice"])
 def test_code_block(config, origins, path, monkeypatch):
     """A CoDe block on the model's paths (plain or folded masks; exact or lattice) equals the
     block formula, for the view block (nine lenses, channels first) and a level-1 U-Net block
@@ -380,7 +367,7 @@ def test_code_block(config, origins, path, monkeypatch):
 
 @pytest.mark.parametrize("path", PATHS)
 @pytest.mark.parametrize("origins", ORIGINS.values(), ids=ORIGINS.keys())
-@pytest.mark.parametrize("config", CONFIGS.values(), ids=CONFIGS.keys())
+@pytest.mark.parametrize("config", [SMALL, LATTICE], ids=["exact", "lattice"])
 def test_svcode_random_weights(config, origins, path, monkeypatch):
     """The whole model with random weights equals the reference, on tiles padded to the
     stride."""
@@ -423,7 +410,7 @@ def _blocks(model: SVCoDe) -> int:
 
 @pytest.mark.parametrize("path", FAST_PATHS)
 @pytest.mark.parametrize("origins", ORIGINS.values(), ids=ORIGINS.keys())
-@pytest.mark.parametrize("config", CONFIGS.values(), ids=CONFIGS.keys())
+@pytest.mark.parametrize("config", [SMALL, LATTICE], ids=["exact", "lattice"])
 def test_fast_block_equals_plain_block(config, origins, path, monkeypatch):
     """A CoDe block on each fast path equals the same block on the plain route."""
     model = visible_model(config)
@@ -450,7 +437,7 @@ def _fast_and_plain(model, views, origins, size, path, monkeypatch):
 
 @pytest.mark.parametrize("path", FAST_PATHS)
 @pytest.mark.parametrize("origins", ORIGINS.values(), ids=ORIGINS.keys())
-@pytest.mark.parametrize("config", CONFIGS.values(), ids=CONFIGS.keys())
+@pytest.mark.parametrize("config", [SMALL, LATTICE], ids=["exact", "lattice"])
 def test_fast_model_equals_plain_model_random_weights(config, origins, path, monkeypatch):
     """The whole model on each fast path equals it on the plain route: the blocks'
     differences, of random sign, add in quadrature (sqrt(blocks) x ROUTES_BLOCK_ULPS)."""

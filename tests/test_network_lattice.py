@@ -9,7 +9,7 @@ import torch
 import torch.nn.functional as F
 
 from svcode_core.network import ModelConfig, SVCoDe, lattice
-from svcode_core.network.encoding import edge_encoding, positional_encoding
+from svcode_core.network.encoding import positional_encoding
 from svcode_core.network.fast import fold
 from svcode_core.network.lattice import (
     LatticeAxis,
@@ -67,12 +67,6 @@ def test_encoding_interpolates_within_the_bound():
         bound = encoding_error_bound(spacing, S, 4, "code")
         assert error <= bound * (1 + 1e-9)
         assert error >= bound / 4
-        for width in (2, 4, 8):  # the edge features, alone (no positional encoding)
-            edges = edge_encoding(nodes[0], S, width, torch.float64)
-            error = (weights @ edges - edge_encoding(pixels, S, width, torch.float64)).abs()
-            bound = encoding_error_bound(spacing, S, 4, "code", False, width)
-            assert error.max().item() <= bound * (1 + 1e-9)
-            assert error.max().item() >= bound / 4
 
 
 def test_mask_spacing_for_respects_the_tolerance():

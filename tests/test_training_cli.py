@@ -130,20 +130,6 @@ def test_train_from_initial_weights(tiny_system, tiny_model_config, tmp_path, ca
     assert main(shorter) == 2
     assert "already has the lens context of reach 2" in capsys.readouterr().err
     assert not (tmp_path / "shorter").exists()
-    # fine-tuning that adds the edge features starts from the same function too
-    edged = Trainer(TrainingData(data), tmp_path / "edged", config.replace(edge_width=4),
-                    TrainConfig(epochs=1), init_weights=weights, progress=False).model.eval()
-    views = torch.rand(2, 9, 16, 16)
-    with torch.no_grad():
-        torch.testing.assert_close(edged(views, [[0, 0], [8, 16]], 48)[1],
-                                   start(views, [[0, 0], [8, 16]], 48)[1], rtol=0, atol=0)
-    assert main([*args[:4], str(tmp_path / "edges"), *args[5:], "--edge-width", "4"]) == 0
-    edges = tmp_path / "edges" / "best.safetensors"
-    assert load_model(edges, tiny_system)[0].model_config == config.replace(edge_width=4)
-    other = [*args[:4], str(tmp_path / "other"), *args[5:7], "--init", str(edges), *args[9:]]
-    assert main([*other, "--edge-width", "8"]) == 2
-    assert "already has edge features of width 4" in capsys.readouterr().err
-    assert not (tmp_path / "other").exists()
     # mirrored padding changes no weights: the file's start under the run's padding
     mirrored = [*args[:4], str(tmp_path / "mirrored"), *args[5:], "--padding", "reflect"]
     assert main(mirrored) == 0

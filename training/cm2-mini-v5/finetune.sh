@@ -23,11 +23,6 @@
 #             past the window?
 #   m16-partial4  4 more epochs of margin16's model (seed 14) with every pixel that some
 #             lens loses off the sensor weighted 4 as well
-#   m16-edges8-e32-r8  m16-edge32-ring8 with the coordinate masks also seeing the distance
-#             to the field's edges (--edge-width 8, entering with zero weights): can the
-#             masks then treat the border apart, so that its weight no longer costs the
-#             centre? m16-edge32-ring8 is its control.
-#   m16-edges8  the same features with margin16's own weights (strips 16, ring 4)
 # The arms after edge16 start from edge16's best epoch (runs/v5-edge16/best.safetensors:
 # `finetune.sh edge16` makes it again) or from margin16's, the bundled cm2-mini model (the
 # same weights).
@@ -57,13 +52,8 @@ case "$arm" in
     export MARGIN=16;;
   m16-partial4) extra=(--edge-weight 16 --partial-weight 4 --seed 14 --init "$margin16")
     export MARGIN=16;;
-  m16-edges8-e32-r8) extra=(--edge-width 8 --edge-weight 32 --ring-weight 8 --seed 14
-    --init "$margin16"); export MARGIN=16;;
-  m16-edges8) extra=(--edge-width 8 --edge-weight 16 --seed 14 --init "$margin16")
-    export MARGIN=16;;
   *) echo "finetune.sh: zeros, reflect, edge16, edge16-long, edge32-ring8, partial4," \
-       "margin16, margin16-long, m16-edge32-ring8, m16-partial4, m16-edges8-e32-r8 or" \
-       "m16-edges8" >&2
+       "margin16, margin16-long, m16-edge32-ring8 or m16-partial4" >&2
      exit 2;;
 esac
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"

@@ -67,11 +67,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="SV-CoDe: run both stages on each sub-view enlarged by PX on "
                         "every side, so the light past its window reaches the "
                         "reconstruction (default: the dataset's --view-margin)")
-    parser.add_argument("--edge-width", type=int, default=0, metavar="PX",
-                        help="SV-CoDe: the coordinate masks also see the distance to the "
-                        "field's edges, on a scale of PX pixels, so they can change within "
-                        "the edge strips; with --init, the file's model gains them with zero "
-                        "weights (default: none, or the --init file's)")
     parser.add_argument("--ablation", default="none", choices=sorted(ABLATIONS),
                         help="switch off the coordinate gate or the positional encoding")
     parser.add_argument("--epochs", type=int, default=defaults.epochs)
@@ -225,13 +220,12 @@ def run(args: argparse.Namespace) -> int:
         if args.init is None:
             model_config = model_config_from(args.model_config or "mini", args.ablation,
                                              args.method, args.lens_context,
-                                             args.padding, margin, args.edge_width)  # fmt: skip
+                                             args.padding, margin)  # fmt: skip
         else:
             init, model_config = initial_weights(args, data.system)
             model_config = with_svcode_options(model_config, args.method,
                                                lens_context=args.lens_context,
-                                               padding=args.padding, view_margin=margin,
-                                               edge_width=args.edge_width)
+                                               padding=args.padding, view_margin=margin)
         trainer = Trainer(data, args.out, model_config, config, device=device, dist=dist,
                           progress=not args.no_progress, init_weights=init)
         trainer.fit(resume=args.resume)

@@ -10,14 +10,7 @@ from .base import MaskLayer
 from .blocks import LayerNorm2d, SimpleChannelAttention, SimpleGate, ViewFusion
 from .cache import MaskCache
 from .config import PE_SCHEMES, ModelConfig
-from .edge import with_edge_features
-from .encoding import (
-    edge_encoding,
-    encoding_size,
-    frequencies,
-    level_coordinates,
-    positional_encoding,
-)
+from .encoding import encoding_size, frequencies, level_coordinates, positional_encoding
 from .lens_context import with_lens_context
 from .masks import CoordGrid
 from .models import (
@@ -47,11 +40,9 @@ __all__ = [
     "SimpleGate",
     "UNet",
     "ViewFusion",
-    "edge_encoding",
     "encoding_size",
     "frequencies",
     "level_coordinates",
     "positional_encoding",
-    "with_edge_features",
     "with_lens_context",
 ]

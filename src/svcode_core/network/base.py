@@ -8,7 +8,6 @@ mask provider of each call, the mask cache, mask inspection and the sizes of a t
 from __future__ import annotations
 
 from collections.abc import Hashable, Sequence
-from functools import partial
 from typing import NamedTuple
 
 import torch
@@ -18,7 +17,7 @@ from torch import nn
 from ..config import DEFAULT_MEMORY_BUDGET, N_LENSES
 from .cache import MaskCache, field_cells
 from .config import ModelConfig
-from .encoding import edge_encoding, level_coordinates, positional_encoding
+from .encoding import level_coordinates, positional_encoding
 from .fast import FastMasks
 from .lattice import interpolate, lattice_axis
 from .masks import PlainMasks, coordinate_grids
@@ -112,10 +111,9 @@ class TiledModel(nn.Module):
             return None
         levels, spacing = self._levels(), self.model_config.mask_spacing
         first = self.model_config.coarse_levels
-        encode = partial(self._encode, size=sub_view_size)
         if not self.fast_masks:
             grids = coordinate_grids(
-                encode, origins, sub_view_size, shape, levels, spacing, first=first
+                self._encode, origins, sub_view_size, shape, levels, spacing, first=first
             )
             return PlainMasks(grids)
         cache = self._mask_cache if not torch.is_grad_enabled() else None
@@ -123,20 +121,16 @@ class TiledModel(nn.Module):
             cache.check_weights(self._weights_key())
             cache.new_call()
         grids = coordinate_grids(
-            encode, origins, sub_view_size, shape, levels, spacing, cache, first
+            self._encode, origins, sub_view_size, shape, levels, spacing, cache, first
         )
         return FastMasks(grids, self._block_names)
 
-    def _encode(self, coords: torch.Tensor, size: int) -> torch.Tensor:
-        """The MLPs' input features at normalised coordinates of a ``size``-pixel axis."""
+    def _encode(self, coords: torch.Tensor) -> torch.Tensor:
         config = self.model_config
         param = next(iter(self._gates.values()))[1].mlp.w_out  # the masks' own precision
-        enc = positional_encoding(
+        return positional_encoding(
             coords, config.pe_bands, config.pe_scheme, config.positional_encoding, param.dtype
-        )
-        if config.edge_width:
-            enc = torch.cat((enc, edge_encoding(coords, size, config.edge_width, param.dtype)), -1)
-        return enc.to(param.device)
+        ).to(param.device)
 
     def _levels(self) -> int:
         return max(stage.levels for stage in self._stages())
@@ -320,11 +314,13 @@ class TiledModel(nn.Module):
             nodes, lattice = lattice_axis(
                 origin, sub_view_size, 0, config.mask_spacing, sub_view_size
             )
-            enc = self._encode(nodes, sub_view_size)
+            enc = self._encode(nodes)
             masks = gate.masks(enc, enc, channels)[:, lens : lens + 1]
             return interpolate(masks, lattice, lattice)[0][0].float()
         axis = level_coordinates(origin, sub_view_size, sub_view_size, 0)[0]
-        enc = self._encode(axis, sub_view_size)
+        enc = positional_encoding(
+            axis, config.pe_bands, config.pe_scheme, config.positional_encoding, param.dtype
+        ).to(param.device)
         row_bytes = sub_view_size * param.shape[-1] * info.lenses * param.element_size()
         chunk = max(1, max_chunk_bytes // row_bytes)
         parts = [

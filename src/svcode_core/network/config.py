@@ -169,15 +169,6 @@ class ModelConfig(BlockConfig):
         past the window alike (a dataset made with ``--view-margin``). It changes no
         weights. ``0``: the sub-views as they are. Model files written before this option
         existed load with 0.
-    edge_width : int
-        ``w > 0``: every coordinate MLP also takes, per axis, the two
-        :func:`~.encoding.edge_encoding` features of width ``w`` sub-view pixels, so a mask
-        can change within a few pixels of the field's border (the edge strips that some
-        lenses lose), which the positional encoding's smooth bands cannot. On a mask
-        lattice of spacing ``p`` they interpolate within ``0.012 (p / w)²``
-        (:func:`~.lattice.encoding_error_bound`). :func:`~.edge.with_edge_features` adds
-        them to a trained model. ``0``: none. Model
-        files written before this option existed load with 0.
     """
 
     width: int = 32
@@ -203,7 +194,6 @@ class ModelConfig(BlockConfig):
     pixel_unshuffle: int = 1
     padding: str = "zeros"
     view_margin: int = 0
-    edge_width: int = 0
 
     block_lists = ("demix_enc_blocks", "demix_dec_blocks", "recon_enc_blocks",
                    "recon_dec_blocks")  # fmt: skip
@@ -254,7 +244,7 @@ class ModelConfig(BlockConfig):
         for name in ("width", "view_width", "pe_bands", "mlp_hidden", "context_reach"):
             check_int(name, getattr(self, name), minimum=1)
         for name in ("demix_middle_blocks", "recon_middle_blocks", "mask_spacing", "pool_window",
-                     "max_width", "view_margin", "edge_width"):
+                     "max_width", "view_margin"):
             check_int(name, getattr(self, name), minimum=0)
         for name in self.block_lists:
             value = getattr(self, name)

@@ -10,8 +10,7 @@ import torch.nn.functional as F
 from ..physics.geometry import normalized_coordinates
 from .config import PE_SCHEMES
 
-__all__ = ["edge_encoding", "encoding_size", "frequencies", "level_coordinates",
-           "positional_encoding"]
+__all__ = ["encoding_size", "frequencies", "level_coordinates", "positional_encoding"]
 
 
 def frequencies(bands: int, scheme: str) -> list[float]:
@@ -26,32 +25,9 @@ def frequencies(bands: int, scheme: str) -> list[float]:
     return [0.5 * (k + 1) for k in range(bands)]
 
 
-def encoding_size(bands: int, enabled: bool = True, edge: bool = False) -> int:
-    """Features per axis: ``2 · bands`` (sin and cos) or 1 for the raw coordinate, and 2
-    more with the :func:`edge_encoding`."""
-    return (2 * bands if enabled else 1) + (2 if edge else 0)
-
-
-def edge_encoding(
-    coords: torch.Tensor, size: int, width: float, dtype: torch.dtype = torch.float32
-) -> torch.Tensor:
-    """``[σ(-d₀/w), σ(-d₁/w)]`` for ``d₀``, ``d₁`` the distances in pixels from normalised
-    coordinates ``coords`` to the first and the last pixel of a ``size``-pixel axis
-    (negative past them): 1/2 on the edge, falling to 0 within a few ``width`` inside.
-
-    A feature that changes within pixels of the border, where the positional encoding's
-    bands change over a good part of the field; shape ``(..., 2)``.
-
-    Examples
-    --------
-    >>> from ..physics.geometry import normalized_coordinates
-    >>> t = normalized_coordinates(101, 0, 101, dtype=torch.float64)
-    >>> edge_encoding(t, 101, 4.0, torch.float64)[[0, 4, 50, 100]].round(decimals=3).tolist()
-    [[0.5, 0.0], [0.269, 0.0], [0.0, 0.0], [0.0, 0.5]]
-    """
-    first = (coords.to(torch.float64) + 1) * (size - 1) / 2
-    distances = torch.stack((first, (size - 1) - first), dim=-1)
-    return torch.sigmoid(-distances / width).to(dtype)
+def encoding_size(bands: int, enabled: bool = True) -> int:
+    """Features per axis: ``2 · bands`` (sin and cos) or 1 for the raw coordinate."""
+    return 2 * bands if enabled else 1
 
 
 def positional_encoding(

@@ -342,34 +342,24 @@ def _node_below(position: torch.Tensor, nodes: int) -> torch.Tensor:
 
 
 def encoding_error_bound(
-    spacing: int,
-    sub_view_size: int,
-    bands: int,
-    scheme: str,
-    enabled: bool = True,
-    edge_width: int = 0,
+    spacing: int, sub_view_size: int, bands: int, scheme: str, enabled: bool = True
 ) -> float:
     """Bound on the linear-interpolation error of the encoding features: ``ω² Δ² / 8``.
 
     ``Δ = 2 p / (S - 1)`` is the node spacing in normalised coordinates and ``ω = π f`` the
     fastest band; without positional encoding the raw coordinate is linear and
-    interpolates exactly (0). With edge features of width ``w`` pixels
-    (:func:`~.encoding.edge_encoding`) the bound is at least ``p² max|σ''| / (8 w²)``,
-    ``max|σ''| = 1 / (6√3)``. ``spacing = 0`` (exact masks) gives 0.
+    interpolates exactly (0). ``spacing = 0`` (exact masks) gives 0.
 
     Examples
     --------
     >>> round(encoding_error_bound(8, 384, 4, "code"), 4)
     0.0086
     """
-    if spacing == 0:
+    if spacing == 0 or not enabled:
         return 0.0
-    edge = spacing**2 / (8.0 * 6.0 * math.sqrt(3.0) * edge_width**2) if edge_width else 0.0
-    if not enabled:
-        return edge
     omega = math.pi * max(frequencies(bands, scheme))
     delta = 2.0 * spacing / (sub_view_size - 1)
-    return max(omega**2 * delta**2 / 8.0, edge)
+    return omega**2 * delta**2 / 8.0
 
 
 def mask_spacing_for(

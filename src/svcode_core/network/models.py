@@ -154,7 +154,7 @@ class CoDeBlock(nn.Module):
 
 def _block(channels: int, config: ModelConfig, lenses: int = 1) -> CoDeBlock:
     hidden = config.mlp_hidden if config.coord_gate else None
-    features = encoding_size(config.pe_bands, config.positional_encoding, config.edge_width > 0)
+    features = encoding_size(config.pe_bands, config.positional_encoding)
     return CoDeBlock(channels, features, hidden, lenses)
 
 

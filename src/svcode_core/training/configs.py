@@ -39,7 +39,7 @@ def config_class(method: str) -> type:
 
 def model_config_from(spec: str, ablation: str = "none", method: str = "svcode",
                       lens_context: int = 0, padding: str | None = None,
-                      view_margin: int | None = None, edge_width: int = 0) -> AnyModelConfig:
+                      view_margin: int | None = None) -> AnyModelConfig:
     """The configuration of ``method`` from ``"mini"``, ``"reference"`` (SV-CoDe only) or a
     JSON file, with the SV-CoDe options (:func:`with_svcode_options`).
 
@@ -60,19 +60,16 @@ def model_config_from(spec: str, ablation: str = "none", method: str = "svcode",
     else:
         path = _config_file(spec, "neither mini, reference nor")
         config = ModelConfig.from_json(path.read_text(encoding="utf-8"))
-    return with_svcode_options(config, method, ablation, lens_context, padding, view_margin,
-                               edge_width)
+    return with_svcode_options(config, method, ablation, lens_context, padding, view_margin)
 
 
 def with_svcode_options(config: AnyModelConfig, method: str, ablation: str = "none",
                         lens_context: int = 0, padding: str | None = None,
-                        view_margin: int | None = None, edge_width: int = 0) -> AnyModelConfig:
+                        view_margin: int | None = None) -> AnyModelConfig:
     """``config`` with an ablation (:data:`ABLATIONS`), the lens context of reach
     ``lens_context`` (0: none; :attr:`~svcode_core.network.ModelConfig.lens_context`,
     :attr:`~svcode_core.network.ModelConfig.context_reach`), the convolutions'
-    ``padding``, the ``view_margin`` (``None``: the configuration's) and the edge
-    features' width (:attr:`~svcode_core.network.ModelConfig.edge_width`, 0: the
-    configuration's) applied; they
+    ``padding`` and the ``view_margin`` (``None``: the configuration's) applied; they
     belong to SV-CoDe and are refused for the configuration of another method. A reach
     shorter than the one ``config`` already has is refused too.
 
@@ -84,8 +81,7 @@ def with_svcode_options(config: AnyModelConfig, method: str, ablation: str = "no
     asked = [flag for flag, on in (("--ablation", ablation != "none"),
                                    ("--lens-context", lens_context),
                                    ("--padding", padding is not None),
-                                   ("--view-margin", view_margin is not None),
-                                   ("--edge-width", edge_width)) if on]
+                                   ("--view-margin", view_margin is not None)) if on]
     if not isinstance(config, ModelConfig):
         if asked:
             verb = "applies" if len(asked) == 1 else "apply"
@@ -96,11 +92,6 @@ def with_svcode_options(config: AnyModelConfig, method: str, ablation: str = "no
         config = config.replace(padding=padding)
     if view_margin is not None:
         config = config.replace(view_margin=view_margin)
-    if edge_width:
-        if config.edge_width and edge_width != config.edge_width:
-            raise ValueError(f"--edge-width {edge_width}: the network configuration already "
-                             f"has edge features of width {config.edge_width}")
-        config = config.replace(edge_width=int(edge_width))
     if not lens_context:
         return config
     if config.lens_context and lens_context < config.context_reach:

@@ -57,7 +57,7 @@ from ..methods.base import native_bf16
 from ..methods.learned import FourierNetConfig, MultiWienerConfig
 from ..methods.model_file import load_model, save_model
 from ..methods.svcode import bf16_network
-from ..network import ModelConfig, SVCoDe, with_edge_features, with_lens_context
+from ..network import ModelConfig, SVCoDe, with_lens_context
 from ..network.compiled import compile_model
 from .dataset import TrainingData
 from .distributed import DistInfo, all_reduce_sum, barrier
@@ -519,9 +519,6 @@ class Trainer:
                                                     context_reach=config.context_reach) == config):
                 # fine-tuning that adds the lens context or lengthens its reach
                 source = with_lens_context(source, config.context_reach)
-            if (config.edge_width and not source.model_config.edge_width
-                    and source.model_config.replace(edge_width=config.edge_width) == config):
-                source = with_edge_features(source, config.edge_width)  # fine-tuning adds them
         if type(source) is not type(self.model) or source.model_config != config:
             raise ValueError(f"{path}: a {type(source).__name__} model of another network "
                              f"configuration than this run's {type(self.model).__name__}")
