@@ -17,14 +17,12 @@ Usage (from the repository root; the v2 data with the 16-px margin, `MARGIN=16` 
 
 from __future__ import annotations
 
-import argparse
-from pathlib import Path
-
 import torch
+from recipe import border_recipe, probe_parser
 
 from svcode_core.methods.model_file import load_model
 from svcode_core.pretrained import bundled_weights
-from svcode_core.training import TrainConfig, Trainer, TrainingData
+from svcode_core.training import Trainer, TrainingData
 from svcode_core.training.loss import field_weights, in_field
 
 
@@ -53,20 +51,14 @@ class AnchoredTrainer(Trainer):
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("run", type=Path)
-    parser.add_argument("--data", type=Path, default=Path("runs/data-v2-m16"))
-    parser.add_argument("--epochs", type=int, default=4)
-    parser.add_argument("--threads", type=int, default=1)
+    parser = probe_parser(__doc__)
     parser.add_argument("--patches", type=int, default=3200, help="training patches per epoch")
     parser.add_argument("--anchor-weight", type=float, default=30.0)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     weights = bundled_weights("cm2-mini")
     reference, _ = load_model(weights)
-    config = TrainConfig(epochs=args.epochs, batch_size=8, same_origin=8, lr=2e-4,
-                         warmup_steps=100, beta=100.0, edge_weight=32.0, ring_weight=8.0,
-                         patches_per_epoch=args.patches, val_patches=128, seed=14)
+    config = border_recipe(args.epochs, args.patches)
     trainer = AnchoredTrainer(TrainingData(args.data), args.run, reference.model_config, config,
                               progress=False, init_weights=weights, reference=reference,
                               weight=args.anchor_weight)  # fmt: skip

@@ -17,16 +17,14 @@ A probe, not a product option. Usage (from the repository root; the v2 data with
 
 from __future__ import annotations
 
-import argparse
-from pathlib import Path
-
 import torch
+from recipe import border_recipe, probe_parser
 
 from svcode_core.config import N_LENSES
 from svcode_core.methods.model_file import load_model, save_model
 from svcode_core.network import SVCoDe
 from svcode_core.pretrained import bundled_weights
-from svcode_core.training import TrainConfig, Trainer, TrainingData
+from svcode_core.training import Trainer, TrainingData
 
 
 def _copies(c: int, doubled: bool = False, groups: int = 1) -> torch.Tensor:
@@ -92,21 +90,14 @@ def widen_views(model: SVCoDe, seed: int = 0) -> SVCoDe:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("run", type=Path)
-    parser.add_argument("--data", type=Path, default=Path("runs/data-v2-m16"))
-    parser.add_argument("--epochs", type=int, default=4)
-    parser.add_argument("--threads", type=int, default=1)
-    args = parser.parse_args()
+    args = probe_parser(__doc__).parse_args()
     torch.set_num_threads(args.threads)
     model, system = load_model(bundled_weights("cm2-mini"))
     args.run.mkdir(parents=True, exist_ok=True)
     start = save_model(args.run / "start.safetensors", widen_views(model), system)
     wide = load_model(start)[0]
-    train = TrainConfig(epochs=args.epochs, batch_size=8, same_origin=8, lr=2e-4,
-                        warmup_steps=100, beta=100.0, edge_weight=32.0, ring_weight=8.0,
-                        patches_per_epoch=3200, val_patches=128, seed=14)
-    trainer = Trainer(TrainingData(args.data), args.run, wide.model_config, train,
+    trainer = Trainer(TrainingData(args.data), args.run, wide.model_config,
+                      border_recipe(args.epochs),
                       progress=False, init_weights=start)
     trainer.fit(resume=(args.run / "checkpoints" / "latest.json").is_file())
     print(f"best epoch {trainer.best.get('epoch')}: {args.run / 'best.safetensors'}")

@@ -1,0 +1,27 @@
+"""What the probes that fine-tune the bundled model share: their command line and
+`m16-edge32-ring8`'s recipe (from `margin16`, the edge strips weighted 32 and the outer
+ring 8, seed 14, on the v2 data with the 16-px margin)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from svcode_core.training import TrainConfig
+
+
+def probe_parser(doc: str) -> argparse.ArgumentParser:
+    """RUN, --data, --epochs and --threads; the description is ``doc``'s first paragraph."""
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    parser.add_argument("run", type=Path)
+    parser.add_argument("--data", type=Path, default=Path("runs/data-v2-m16"))
+    parser.add_argument("--epochs", type=int, default=4)
+    parser.add_argument("--threads", type=int, default=1)
+    return parser
+
+
+def border_recipe(epochs: int = 4, patches: int = 3200) -> TrainConfig:
+    """`m16-edge32-ring8`'s training settings."""
+    return TrainConfig(epochs=epochs, batch_size=8, same_origin=8, lr=2e-4, warmup_steps=100,
+                       beta=100.0, edge_weight=32.0, ring_weight=8.0,
+                       patches_per_epoch=patches, val_patches=128, seed=14)  # fmt: skip
