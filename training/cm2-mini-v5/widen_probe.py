@@ -44,8 +44,8 @@ def _split(weight: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor, gen) ->
     column not copied keeps it."""
     new = weight[rows][:, cols].clone()
     r = 0.3 + 0.4 * torch.rand(new.shape[0], weight.shape[1], *new.shape[2:], generator=gen)
-    seen: set[int] = set()
-    first = torch.tensor([not (old in seen or seen.add(old)) for old in cols.tolist()])
+    first = torch.zeros(len(cols), dtype=torch.bool)  # the first copy of each column
+    first[[cols.tolist().index(old) for old in set(cols.tolist())]] = True
     copied = torch.bincount(cols, minlength=weight.shape[1])[cols] > 1
     shape = (1, -1, *[1] * (new.dim() - 2))  # per input column
     share = torch.where(first.view(shape), r[:, cols], 1 - r[:, cols])
@@ -135,11 +135,10 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     model, system = load_model(bundled_weights("cm2-mini"))
     args.run.mkdir(parents=True, exist_ok=True)
-    start = save_model(args.run / "start.safetensors", widen(model, unet=args.unet), system)
-    wide = load_model(start)[0]
+    wide = widen(model, unet=args.unet)
+    start = save_model(args.run / "start.safetensors", wide, system)
     trainer = Trainer(TrainingData(args.data), args.run, wide.model_config,
-                      border_recipe(args.epochs),
-                      progress=False, init_weights=start)
+                      border_recipe(args.epochs), progress=False, init_weights=start)
     trainer.fit(resume=(args.run / "checkpoints" / "latest.json").is_file())
     print(f"best epoch {trainer.best.get('epoch')}: {args.run / 'best.safetensors'}")
 
