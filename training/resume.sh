@@ -7,7 +7,8 @@
 # OBJECTS=KIND (default mixed) trains on the v2 data with another phantom kind instead,
 # in runs/data-v2-KIND (the same seed, departures and frame count). MARGIN=PX stores the
 # views and targets PX past each sub-view's window (runs/data-v2-mPX, about 1.2 x the disk):
-# the model is then trained with that view margin.
+# the model is then trained with that view margin. DEPARTURES=FILE draws the instruments
+# from FILE instead of cm2-mini-v2/departures.json, in a data folder named after it.
 set -euo pipefail
 run="$1" state="$2"
 shift 2
@@ -20,8 +21,10 @@ data=runs/data-v2
 [ "$objects" = mixed ] || data="runs/data-v2-$objects"
 margin="${MARGIN:-0}"
 [ "$margin" = 0 ] || data="$data-m$margin"
+departures="${DEPARTURES:-$here/cm2-mini-v2/departures.json}"
+[ -z "${DEPARTURES:-}" ] || data="$data-$(basename "$departures" .json)"
 svcode dataset --preset cm2-mini --frames 480 --out "$data" --seed 0 --objects "$objects" \
-  --departures "$here/cm2-mini-v2/departures.json" --view-margin "$margin" --no-progress
+  --departures "$departures" --view-margin "$margin" --no-progress
 if [ ! -f "$run/checkpoints/latest.json" ] && [ -f "$state/checkpoints/latest.json" ]; then
   mkdir -p "$run" && cp -r "$state/." "$run/"
 fi

@@ -23,6 +23,12 @@
 #             past the window?
 #   m16-partial4  4 more epochs of margin16's model (seed 14) with every pixel that some
 #             lens loses off the sensor weighted 4 as well
+#   h50-margin16  4 more epochs of margin16's model (seed 14, its own weights: strips 16,
+#             ring 4) on frames whose haze reaches half the signal (haze50.json; the v2
+#             recipe stops at a quarter, the held-out background regime has half): does
+#             the wider haze range hold the means under haze?
+#   h50-edge32-ring8  m16-edge32-ring8 on the same frames: with the haze covered, do the
+#             border weights still cost the realistic mean?
 # The arms after edge16 start from edge16's best epoch (runs/v5-edge16/best.safetensors:
 # `finetune.sh edge16` makes it again) or from margin16's, the bundled cm2-mini model (the
 # same weights).
@@ -52,8 +58,13 @@ case "$arm" in
     export MARGIN=16;;
   m16-partial4) extra=(--edge-weight 16 --partial-weight 4 --seed 14 --init "$margin16")
     export MARGIN=16;;
+  h50-margin16) extra=(--edge-weight 16 --seed 14 --init "$margin16")
+    export MARGIN=16 DEPARTURES="$here/haze50.json";;
+  h50-edge32-ring8) extra=(--edge-weight 32 --ring-weight 8 --seed 14 --init "$margin16")
+    export MARGIN=16 DEPARTURES="$here/haze50.json";;
   *) echo "finetune.sh: zeros, reflect, edge16, edge16-long, edge32-ring8, partial4," \
-       "margin16, margin16-long, m16-edge32-ring8 or m16-partial4" >&2
+       "margin16, margin16-long, m16-edge32-ring8, m16-partial4, h50-margin16 or" \
+       "h50-edge32-ring8" >&2
      exit 2;;
 esac
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
