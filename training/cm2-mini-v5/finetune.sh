@@ -30,19 +30,23 @@
 #   h50-edge32-ring8  m16-edge32-ring8 on the same frames: with the haze covered, do the
 #             border weights still cost the realistic mean?
 # The arms after edge16 start from edge16's best epoch (runs/v5-edge16/best.safetensors:
-# `finetune.sh edge16` makes it again) or from margin16's, the bundled cm2-mini model (the
-# same weights).
+# `finetune.sh edge16` makes it again) or from margin16's (runs/v5-margin16/best.safetensors:
+# `finetune.sh margin16` after edge16; it was the bundled cm2-mini model while the m16 and
+# h50 arms ran, and h50-edge32-ring8 is the bundled model now).
 # Resumable over sessions (../resume.sh).
 # Usage (from the repository root): bash training/cm2-mini-v5/finetune.sh ARM
 set -euo pipefail
 arm="$1"
 here="$(cd "$(dirname "$0")" && pwd)"
 edge16=runs/v5-edge16/best.safetensors
-margin16="$here/../../src/svcode_core/weights/cm2-mini.safetensors"
+margin16=runs/v5-margin16/best.safetensors
 case "$arm" in
   edge16-long|edge32-ring8|margin16|margin16-long)
     [ -f "$edge16" ] || { echo "finetune.sh $arm starts from $edge16: run the edge16 arm first" >&2
                           exit 2; };;
+  m16-*|h50-*)
+    [ -f "$margin16" ] || { echo "finetune.sh $arm starts from $margin16: run the margin16 arm" \
+                              "first" >&2; exit 2; };;
 esac
 case "$arm" in
   zeros) extra=();;

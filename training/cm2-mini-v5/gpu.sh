@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Three fine-tuning arms of the bundled cm2-mini model (margin16) on one GPU, side by side,
+# Three fine-tuning arms of the bundled cm2-mini model (margin16 when they ran) on one GPU, side by side,
 # within a wall-clock budget, beside the prepared GPU check (bench/gpu_check.sh):
 #   gpu-long          margin16's recipe (strips weighted 16, ring 4) on four times the
 #                     data (1,920 frames), batch 32, lr 1e-4: does more data and more
