@@ -51,7 +51,8 @@ FRAME_PIXELS = 384**2
 RUN = "training/cm2-mini-v3/context-scratch/best.safetensors"
 #: the bundled model's first run: (commit holding its best file, epochs trained)
 LINEAGE = (("b580b66", 10), ("66fff74", 15), ("345a14e", 19))
-BUNDLED_EPOCHS = 20 + 6 + 7 + 4 + 4 + 4  # first run, then the five fine-tunings up to the kept epoch
+#: the first run, then the five fine-tunings up to the kept epoch
+BUNDLED_EPOCHS = 20 + 6 + 7 + 4 + 4 + 4
 
 
 def validation_frames(data: TrainingData) -> list[tuple[np.ndarray, torch.Tensor]]:
