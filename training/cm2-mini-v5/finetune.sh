@@ -28,7 +28,11 @@
 #             recipe stops at a quarter, the held-out background regime has half): does
 #             the wider haze range hold the means under haze?
 #   h50-edge32-ring8  m16-edge32-ring8 on the same frames: with the haze covered, do the
-#             border weights still cost the realistic mean?
+#             border weights still cost the realistic mean? (bundled as cm2-mini)
+#   h50-long  4 more epochs of h50-edge32-ring8's model (seed 15, the same weights): do the
+#             ring and the mean go on together?
+#   h50-edge64-ring16  the same with the strips weighted 64 and the ring 16: now that the
+#             weights no longer cost the mean, do heavier ones move the border?
 # The arms after edge16 start from edge16's best epoch (runs/v5-edge16/best.safetensors:
 # `finetune.sh edge16` makes it again) or from margin16's (runs/v5-margin16/best.safetensors:
 # `finetune.sh margin16` after edge16; it was the bundled cm2-mini model while the m16 and
@@ -40,11 +44,15 @@ arm="$1"
 here="$(cd "$(dirname "$0")" && pwd)"
 edge16=runs/v5-edge16/best.safetensors
 margin16=runs/v5-margin16/best.safetensors
+h50=runs/v5-h50-edge32-ring8/best.safetensors
 case "$arm" in
+  h50-long|h50-edge64-ring16)
+    [ -f "$h50" ] || { echo "finetune.sh $arm starts from $h50: run the h50-edge32-ring8 arm" \
+                         "first" >&2; exit 2; };;
   edge16-long|edge32-ring8|margin16|margin16-long)
     [ -f "$edge16" ] || { echo "finetune.sh $arm starts from $edge16: run the edge16 arm first" >&2
                           exit 2; };;
-  m16-*|h50-*)
+  m16-*|h50-margin16|h50-edge32-ring8)
     [ -f "$margin16" ] || { echo "finetune.sh $arm starts from $margin16: run the margin16 arm" \
                               "first" >&2; exit 2; };;
 esac
@@ -66,9 +74,13 @@ case "$arm" in
     export MARGIN=16 DEPARTURES="$here/haze50.json";;
   h50-edge32-ring8) extra=(--edge-weight 32 --ring-weight 8 --seed 14 --init "$margin16")
     export MARGIN=16 DEPARTURES="$here/haze50.json";;
+  h50-long) extra=(--edge-weight 32 --ring-weight 8 --seed 15 --init "$h50")
+    export MARGIN=16 DEPARTURES="$here/haze50.json";;
+  h50-edge64-ring16) extra=(--edge-weight 64 --ring-weight 16 --seed 15 --init "$h50")
+    export MARGIN=16 DEPARTURES="$here/haze50.json";;
   *) echo "finetune.sh: zeros, reflect, edge16, edge16-long, edge32-ring8, partial4," \
-       "margin16, margin16-long, m16-edge32-ring8, m16-partial4, h50-margin16 or" \
-       "h50-edge32-ring8" >&2
+       "margin16, margin16-long, m16-edge32-ring8, m16-partial4, h50-margin16," \
+       "h50-edge32-ring8, h50-long or h50-edge64-ring16" >&2
      exit 2;;
 esac
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
