@@ -3,8 +3,8 @@
 # check, then refresh every result that quotes the bundled model, the other methods' rows
 # kept: the held-out benchmark (bench/results/regimes.*), the same-content ring gap with
 # its tile and refinement rows, the exposure sweeps, the bar target, beads, ghosts, the
-# network's stability report, the data-efficiency point, the README screenshots; and print
-# the demo's PSNR and the profile and seam tests' outcome
+# total light, the network's stability report, the data-efficiency point, the README
+# screenshots; and print the demo's PSNR and the profile and seam tests' outcome
 # (the seam test's expected failure names a measured agreement: update its reason in
 # tests/test_tile_plan.py by hand, with the model card, the README's tables,
 # docs/regimes.md and BUNDLED_EPOCHS in bench/data_efficiency.py, first); a profile test that fails stops the bundle: it ships only when the
@@ -42,6 +42,7 @@ python bench/exposure.py --no-admm --merge
 python bench/resolution.py --refine-periphery 50
 python bench/beads.py --no-admm --merge
 python bench/ghosts.py
+python bench/total_light.py
 python bench/data_efficiency.py --merge  # the v2 data: training/resume.sh makes it
 python bench/stability.py
 SVCODE_UPDATE_SCREENSHOT=1 xvfb-run -a python -m pytest -q tests/test_napari_widgets.py \
