@@ -17,7 +17,7 @@ import argparse
 import time
 from pathlib import Path
 
-from probes import Reconstruct, admm_method, svcode_methods, write_report
+from probes import Reconstruct, add_probe_arguments, admm_method, svcode_methods, write_report
 
 from svcode_bench.ghosts import DIRECTIONS, ghost_probe
 from svcode_core.config import SystemConfig
@@ -25,7 +25,6 @@ from svcode_core.physics.cm2 import CM2Operator
 from svcode_core.physics.psf_io import model_psfs
 from svcode_core.physics.simulate import Simulator
 
-RESULTS = Path(__file__).parent / "results"
 CENTRES = ((192, 192), (220, 300), (100, 192), (192, 80), (280, 280))
 DISCS = ((40, 1.0), (6, 1.0), (40, 0.3))  # (radius, level)
 ADMM_CENTRES = CENTRES[:2] + CENTRES[3:4]
@@ -73,11 +72,7 @@ def write_markdown(report: dict, path: Path) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--weights", type=Path, nargs="*", default=[],
-                        help="further SV-CoDe model files (the bundled one always runs)")
-    parser.add_argument("--no-admm", action="store_true", help="skip LSV-ADMM")
-    parser.add_argument("--out", type=Path, default=RESULTS / "ghosts",
-                        help="output stem (.json and .md; default bench/results/ghosts)")
+    add_probe_arguments(parser, "ghosts")
     args = parser.parse_args()
     system = SystemConfig.preset("cm2-mini")
     simulator = Simulator(system, CM2Operator.from_psfs(system, model_psfs(system)))

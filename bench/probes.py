@@ -107,6 +107,16 @@ def add_system_argument(parser: argparse.ArgumentParser) -> None:
                         "paper-scale plan's scenes)")  # fmt: skip
 
 
+def add_probe_arguments(parser: argparse.ArgumentParser, name: str) -> None:
+    """``--weights`` (further SV-CoDe models beside the bundled one), ``--no-admm`` and
+    ``--out`` (the report's stem, default ``bench/results/<name>``) of a probe script."""
+    parser.add_argument("--weights", type=Path, nargs="*", default=[],
+                        help="further SV-CoDe model files (the bundled one always runs)")
+    parser.add_argument("--no-admm", action="store_true", help="skip LSV-ADMM")
+    parser.add_argument("--out", type=Path, default=RESULTS / name,
+                        help=f"output stem (.json and .md; default bench/results/{name})")
+
+
 def add_check_arguments(parser: argparse.ArgumentParser, what: str, name: str) -> None:
     """``--record`` (write ``what`` into the model file) and ``--out`` (the report's stem,
     default ``bench/results/<name>``) of a script that measures a model file."""

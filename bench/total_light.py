@@ -17,7 +17,13 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-from probes import RESULTS, admm_method, plan_truths, svcode_methods, write_report
+from probes import (
+    add_probe_arguments,
+    admm_method,
+    plan_truths,
+    svcode_methods,
+    write_report,
+)
 
 from svcode_bench.regimes import regime_simulator
 from svcode_core.config import SystemConfig
@@ -58,11 +64,7 @@ def write_markdown(report: dict, path: Path) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--weights", type=Path, nargs="*", default=[],
-                        help="further SV-CoDe model files (the bundled one always runs)")
-    parser.add_argument("--no-admm", action="store_true", help="skip LSV-ADMM")
-    parser.add_argument("--out", type=Path, default=RESULTS / "total_light",
-                        help="output stem (.json and .md; default bench/results/total_light)")
+    add_probe_arguments(parser, "total_light")
     args = parser.parse_args()
     system = SystemConfig.preset("cm2-mini")
     methods = svcode_methods(system, args.weights)
