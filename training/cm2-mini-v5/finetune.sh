@@ -33,6 +33,11 @@
 #             ring and the mean go on together?
 #   h50-edge64-ring16  the same with the strips weighted 64 and the ring 16: now that the
 #             weights no longer cost the mean, do heavier ones move the border?
+#   o150-edge32-ring8  h50-long on frames whose optical departures (array shift and
+#             rotation, jitter, aberrations, defocus, depth) reach 1.5x the v2 ranges
+#             (optics150.json, haze as haze50.json): the held-out realistic instrument sits
+#             at the corner of the v2 ranges, where the ring's PSFs depart most; does
+#             covering it narrow the ring's gap there?
 # The arms after edge16 start from edge16's best epoch (runs/v5-edge16/best.safetensors:
 # `finetune.sh edge16` makes it again) or from margin16's (runs/v5-margin16/best.safetensors:
 # `finetune.sh margin16` after edge16; it was the bundled cm2-mini model while the m16 and
@@ -46,7 +51,7 @@ edge16=runs/v5-edge16/best.safetensors
 margin16=runs/v5-margin16/best.safetensors
 h50=runs/v5-h50-edge32-ring8/best.safetensors
 case "$arm" in
-  h50-long|h50-edge64-ring16)
+  h50-long|h50-edge64-ring16|o150-edge32-ring8)
     [ -f "$h50" ] || { echo "finetune.sh $arm starts from $h50: run the h50-edge32-ring8 arm" \
                          "first" >&2; exit 2; };;
   edge16-long|edge32-ring8|margin16|margin16-long)
@@ -78,9 +83,11 @@ case "$arm" in
     export MARGIN=16 DEPARTURES="$here/haze50.json";;
   h50-edge64-ring16) extra=(--edge-weight 64 --ring-weight 16 --seed 15 --init "$h50")
     export MARGIN=16 DEPARTURES="$here/haze50.json";;
+  o150-edge32-ring8) extra=(--edge-weight 32 --ring-weight 8 --seed 15 --init "$h50")
+    export MARGIN=16 DEPARTURES="$here/optics150.json";;
   *) echo "finetune.sh: zeros, reflect, edge16, edge16-long, edge32-ring8, partial4," \
        "margin16, margin16-long, m16-edge32-ring8, m16-partial4, h50-margin16," \
-       "h50-edge32-ring8, h50-long or h50-edge64-ring16" >&2
+       "h50-edge32-ring8, h50-long, h50-edge64-ring16 or o150-edge32-ring8" >&2
      exit 2;;
 esac
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
