@@ -17,15 +17,9 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-from probes import (
-    add_probe_arguments,
-    admm_method,
-    plan_truths,
-    svcode_methods,
-    write_report,
-)
+from probes import add_probe_arguments, admm_method, svcode_methods, write_report
 
-from svcode_bench.regimes import regime_simulator
+from svcode_bench.regimes import make_scenes, plan_for, regime_simulator
 from svcode_core.config import SystemConfig
 from svcode_core.physics.cm2 import CM2Operator
 from svcode_core.physics.psf_io import model_psfs
@@ -70,16 +64,14 @@ def main() -> None:
     methods = svcode_methods(system, args.weights)
     if not args.no_admm:
         methods.append(admm_method(system, 50))
-    truths = plan_truths(system)
     nominal = Simulator(system, CM2Operator.from_psfs(system, model_psfs(system)))
     rows = []
     for regime in REGIMES:
-        simulator = regime_simulator(system, regime, nominal)
-        frames = {name: simulator.simulate(truth, seed=100 + index).measurement
-                  for name, (index, truth) in truths.items()}
+        scenes = make_scenes(system, plan_for(system).scenes,
+                             regime_simulator(system, regime, nominal))  # fmt: skip
         for label, reconstruct in methods:
-            ratios = {name: light_ratio(reconstruct(frames[name]), truth)
-                      for name, (_, truth) in truths.items()}
+            ratios = {scene.name: light_ratio(reconstruct(scene.raw), scene.truth)
+                      for scene in scenes}  # fmt: skip
             rows.append({"regime": regime, "method": label, "ratios": ratios})
             print(f"[{regime}] {label}: mean {np.mean(list(ratios.values())):.3f}", flush=True)
     write_report(rows, args.out, write_markdown, system=system.name)
