@@ -3,7 +3,7 @@
 The stage swap (README, "Which stage carries the trade") found the border's gain and the
 haze regimes' loss both in the demixing stage. This probe fine-tunes with the border
 weighted as `m16-edge32-ring8` does, and adds a third pair to the loss: the demixing
-stage's output against a frozen reference model's (the bundled one) on the pixels inside
+stage's output against a frozen reference model's (the start, `margin16`) on the pixels inside
 the field that are neither in the outer ring nor in the edge strips (the pixels the
 border weights leave at 1), so the inside is asked to stay as it was while the border
 moves. The pair is scored like the stages (SSIM and MSE), both sides scaled by
@@ -18,10 +18,9 @@ Usage (from the repository root; the v2 data with the 16-px margin, `MARGIN=16` 
 from __future__ import annotations
 
 import torch
-from recipe import border_recipe, probe_parser
+from recipe import border_recipe, probe_parser, start_weights
 
 from svcode_core.methods.model_file import load_model
-from svcode_core.pretrained import bundled_weights
 from svcode_core.training import Trainer, TrainingData
 from svcode_core.training.loss import field_weights, in_field
 
@@ -56,7 +55,7 @@ def main() -> None:
     parser.add_argument("--anchor-weight", type=float, default=30.0)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    weights = bundled_weights("cm2-mini")
+    weights = start_weights(args.init)
     reference, _ = load_model(weights)
     config = border_recipe(args.epochs, args.patches)
     trainer = AnchoredTrainer(TrainingData(args.data), args.run, reference.model_config, config,

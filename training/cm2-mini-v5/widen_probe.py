@@ -19,12 +19,11 @@ A probe, not a product option. Usage (from the repository root; the v2 data with
 from __future__ import annotations
 
 import torch
-from recipe import border_recipe, probe_parser
+from recipe import border_recipe, probe_parser, start_weights
 
 from svcode_core.config import N_LENSES
 from svcode_core.methods.model_file import load_model, save_model
 from svcode_core.network import SVCoDe
-from svcode_core.pretrained import bundled_weights
 from svcode_core.training import Trainer, TrainingData
 
 
@@ -133,7 +132,7 @@ def main() -> None:
     parser.add_argument("--unet", action="store_true", help="widen the U-Nets as well")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    model, system = load_model(bundled_weights("cm2-mini"))
+    model, system = load_model(start_weights(args.init))
     args.run.mkdir(parents=True, exist_ok=True)
     wide = widen(model, unet=args.unet)
     start = save_model(args.run / "start.safetensors", wide, system)
