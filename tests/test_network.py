@@ -301,10 +301,33 @@ def test_layer_norm_matches_the_per_pixel_formula_in_float64(layout):
     expected = (a - mean) / np.sqrt(var + norm.eps) * norm.weight.detach().double().numpy()[
         None, :, None, None] + norm.bias.detach().double().numpy()[None, :, None, None]
     # normalised values are O(1): a few float32 roundings of each
-    np.testing.assert_allclose(out.detach().double().numpy(), expected, rtol=0,
-                               atol=16 * np.finfo(np.float32).eps * np.abs(expected).max())
+    atol = 16 * np.finfo(np.float32).eps * np.abs(expected).max()
+    np.testing.assert_allclose(out.detach().double().numpy(), expected, rtol=0, atol=atol)
+    with torch.no_grad():  # inference computes the channel means as matrix products
+        np.testing.assert_allclose(norm(x).double().numpy(), expected, rtol=0, atol=atol)
     out.square().sum().backward()
     assert x.grad is not None and torch.isfinite(x.grad).all()
+
+
+@pytest.mark.parametrize("layout", [torch.contiguous_format, torch.channels_last])
+def test_bf16_means_are_float32_means_rounded(layout):
+    """The matrix-product means accumulate bf16 features in float32: the channel mean is
+    the float32 mean rounded once to bf16 (unit roundoff 2⁻⁸), the spatial mean twice (the
+    sum, then the quotient), each up to the float32 sum's own error (n roundings at worst)."""
+    from svcode_core.network.blocks import channel_mean, spatial_mean
+
+    torch.manual_seed(0)
+    x = torch.rand(2, 8, 16, 24).bfloat16()
+    with torch.no_grad():  # inference: the matrix products
+        pairs = [(spatial_mean(x.contiguous(memory_format=layout)), x.float().mean((2, 3), True),
+                  2)]  # fmt: skip
+        if layout == torch.contiguous_format:
+            pairs.append((channel_mean(x), x.float().mean(1, keepdim=True), 1))
+    for got, mean, roundings in pairs:
+        n = x[0].numel() // mean[0].numel()  # terms per mean
+        bound = (roundings * 2.0**-8 + n * torch.finfo(torch.float32).eps) * mean.abs()
+        assert got.dtype == torch.bfloat16 and got.shape == mean.shape
+        assert ((got.float() - mean).abs() <= bound).all()
 
 
 def test_view_block_runs_channels_first_and_the_u_net_channels_last():
