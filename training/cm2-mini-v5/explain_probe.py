@@ -30,6 +30,7 @@ import os
 import sys
 from pathlib import Path
 
+import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
@@ -37,6 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
 import ring_gap  # noqa: E402
 
 from svcode_core.config import SystemConfig  # noqa: E402
+from svcode_core.evaluation.metrics import edge_columns  # noqa: E402
 from svcode_core.evaluation.zones import EDGE_STRIP  # noqa: E402
 from svcode_core.network.models import SVCoDe  # noqa: E402
 from svcode_core.physics.cm2 import CM2Operator  # noqa: E402
@@ -77,8 +79,8 @@ def forward_explained(self: SVCoDe, views, origins, sub_view_size):
     estimate = recon[0, 0, field, field].float()
     own = views[0, :: self.demix.views_per_lens].float()
     explained = explained_views(estimate, own, margin).to(demixed.dtype)
-    columns = torch.arange(w) - margin
-    strips = (columns < EDGE_STRIP) | (columns >= sub_view_size - EDGE_STRIP)
+    field_strips = edge_columns(sub_view_size, EDGE_STRIP)[0]  # and the margin past them
+    strips = torch.from_numpy(np.pad(field_strips, margin, constant_values=True))
     second = self.recon.run(torch.where(strips, explained[None], demixed[..., :h, :w]), masks)
     recon = torch.where(strips, second, recon[..., :h, :w])
     return demixed[..., :h, :w], recon
