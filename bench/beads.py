@@ -27,9 +27,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-from probes import admm_auto, learned_methods, realistic_simulator, write_report
+from probes import admm_auto, learned_methods, write_report
 
 from svcode_bench.beads import BEAD_SIGMA, BeadScore, bead_phantom, score_beads
+from svcode_bench.regimes import regime_simulator
 from svcode_core.config import SystemConfig
 from svcode_core.methods.build import build_reconstructor
 
@@ -71,7 +72,7 @@ def main() -> None:
                         "not replace (same method)")
     args = parser.parse_args()
     system = SystemConfig.preset("cm2-mini")
-    simulator = realistic_simulator(system)
+    simulator = regime_simulator(system, "realistic")
     reconstructors = methods(system, not args.no_admm, args.learned, not args.only_learned)
     labels = [TRUTH, *reconstructors]
     scores = {label: {d: [] for d in DENSITIES} for label in labels}

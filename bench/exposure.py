@@ -35,10 +35,10 @@ from probes import (
     earlier_rows,
     learned_methods,
     plan_truths,
-    realistic_simulator,
     write_report,
 )
 
+from svcode_bench.regimes import regime_simulator
 from svcode_core.config import SystemConfig, load_system
 from svcode_core.evaluation.metrics import psnr
 from svcode_core.methods.build import build_reconstructor
@@ -82,7 +82,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     system = load_system(args.system)
     kept = earlier_rows(args.out, system, "exposure") if args.merge else []
-    simulator = realistic_simulator(system)
+    simulator = regime_simulator(system, "realistic")
     realistic = simulator.departures
     truths = plan_truths(system)
     recorded = {fraction: {} for fraction in PHOTON_FRACTIONS}

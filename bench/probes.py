@@ -24,8 +24,6 @@ from svcode_bench.regimes import (
 from svcode_core.config import SystemConfig
 from svcode_core.methods.base import BaseReconstructor
 from svcode_core.methods.build import build_reconstructor
-from svcode_core.physics.departures import Departures
-from svcode_core.physics.simulate import Simulator
 from svcode_core.pretrained import require_bundled_weights
 
 #: raw frame ``(H, W)`` to the ``(S, S)`` object estimate
@@ -93,11 +91,6 @@ def admm_auto(system: SystemConfig, iterations: int | None = None
     return (f"LSV-ADMM K={ADMM_RANK}, {iterations} it, λ auto",
             build_reconstructor("admm", system, rank=ADMM_RANK, iterations=iterations,
                                 tolerance=0.0, tv_weight="auto"))
-
-
-def realistic_simulator(system: SystemConfig) -> Simulator:
-    """The realistic regime's departed instrument (the methods are given ``system``)."""
-    return Simulator(system, departures=Departures.named(REGIMES["realistic"], system))
 
 
 def add_system_argument(parser: argparse.ArgumentParser) -> None:

@@ -37,7 +37,6 @@ from svcode_bench.resolution import (
 )
 from svcode_core.config import SystemConfig
 from svcode_core.methods.build import build_reconstructor
-from svcode_core.physics.simulate import Simulator
 
 RESULTS = Path(__file__).parent / "results"
 
@@ -71,9 +70,8 @@ def main() -> None:
         methods[label] = admm
     targets = [bar_target(system.sub_view_size, period, gap=gap) for period in periods]
     rows = [_row("truth", "–", [target for target, _ in targets], targets, periods)]
-    nominal = Simulator(system)
     for regime in args.regimes:
-        simulator = regime_simulator(system, regime, nominal)
+        simulator = regime_simulator(system, regime)
         frames = [simulator.simulate(target, seed=300 + index).measurement.astype(np.float32)
                   for index, (target, _) in enumerate(targets)]
         for label, rec in methods.items():

@@ -482,12 +482,14 @@ def learned_rows(
 
 
 # ------------------------------------------------------------------ driver
-def regime_simulator(system: SystemConfig, regime: str, nominal: Simulator) -> Simulator:
-    """The simulator of one regime: ``nominal`` for matched, else the departed instrument."""
+def regime_simulator(system: SystemConfig, regime: str, nominal: Simulator | None = None
+                     ) -> Simulator:  # fmt: skip
+    """The simulator of one regime: the nominal instrument for matched (``nominal`` when
+    given, built once by callers that run several regimes), else the departed one."""
     if regime not in REGIMES:
         raise ValueError(f"unknown regime {regime!r}; choose from {', '.join(REGIMES)}")
     if regime == "matched":
-        return nominal
+        return nominal or Simulator(system)
     return Simulator(system, departures=Departures.named(REGIMES[regime], system))
 
 
