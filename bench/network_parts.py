@@ -199,25 +199,31 @@ def markdown(report: dict) -> str:
         "`train` one eager training step (8 × 96², forward, backward, Adam). The wall time is "
         f"the median of {ROUNDS} rounds in which the four runs take turns; *× fp32* the "
         "median over rounds of the float32 run's time over this one's in the same round "
-        "(a ratio that holds on a machine whose speed drifts). Seconds per part are each "
+        "(a ratio that holds on a machine whose speed drifts); *× fp32, products free* the "
+        "speed-up over float32 if this run's convolutions and matrix products took no time "
+        "(their share of the parts' time removed from its wall time), the most that faster "
+        "products alone can give. Seconds per part are each "
         "part's own operator time in one profiled run; GFLOP/s of a part is its FLOPs over "
         "its time, and *of peak* compares it with a 2048² matrix product on the same thread "
         f"(fp32 {peak['fp32']:.0f}, bf16 {peak['bf16']:.0f} GFLOP/s; {report['processor']}, "
         f"torch's CPU capability {report['capability']}).",
         "",
         "| workload | precision | wall s | × fp32 | " + " | ".join(f"{p} s" for p in PARTS)
-        + " | conv GFLOP/s | conv of peak | MLP GFLOP/s |",
-        "|---|---|---|---|" + "---|" * len(PARTS) + "---|---|---|",
+        + " | conv GFLOP/s | conv of peak | MLP GFLOP/s | × fp32, products free |",
+        "|---|---|---|---|" + "---|" * len(PARTS) + "---|---|---|---|",
     ]
+    fp32_wall = {r["workload"]: r["wall_s"] for r in report["rows"] if r["precision"] == "fp32"}
     for r in report["rows"]:
         sec, gf = r["seconds"], r["gflop"]
+        products = (sec["convolution"] + sec["matrix product"]) / sum(sec.values())
+        bound = fp32_wall[r["workload"]] / (r["wall_s"] * (1 - products))
         conv = gf["convolution"] / max(sec["convolution"], 1e-9)
         mlp = gf["matrix product"] / max(sec["matrix product"], 1e-9)
         lines.append(
             f"| {r['workload']} | {r['precision']} | {r['wall_s']:.3f} | "
             f"{r['speed_vs_fp32']:.2f} | "
             + " | ".join(f"{sec[p]:.3f}" for p in PARTS)
-            + f" | {conv:.0f} | {conv / peak[r['precision']]:.0%} | {mlp:.0f} |"
+            + f" | {conv:.0f} | {conv / peak[r['precision']]:.0%} | {mlp:.0f} | {bound:.2f} |"
         )
     return "\n".join(lines) + "\n"
 
