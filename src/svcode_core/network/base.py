@@ -99,7 +99,7 @@ class TiledModel(nn.Module):
         # mirrored padding needs 2 pixels at the coarsest level
         least = 2 * self.stride if self.model_config.padding == "reflect" else 0
         height, width = (max(n + -n % self.stride, least) for n in (h, w))
-        padded = F.pad(views, (0, width - w, 0, height - h))
+        padded = views if (height, width) == (h, w) else F.pad(views, (0, width - w, 0, height - h))
         return padded, self.masks_for(origins.long(), sub_view_size, tuple(padded.shape[-2:]))
 
     def masks_for(

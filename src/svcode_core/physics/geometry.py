@@ -168,11 +168,14 @@ def crops_at(frame: torch.Tensor, corners: np.ndarray, size: int) -> torch.Tenso
     """``size``-square crops of a frame ``(..., H, W)`` at the top-left ``corners``
     ``(n, 2)``, zero where they leave the frame; shape ``(..., n, size, size)``."""
     rows, cols = frame.shape[-2:]
-    crops = frame.new_zeros(*frame.shape[:-2], len(corners), size, size)
+    crops = frame.new_empty(*frame.shape[:-2], len(corners), size, size)
     for index, (r0, c0) in enumerate(corners):
         fr0, fr1, vr0, vr1 = _overlap(int(r0), size, rows)
         fc0, fc1, vc0, vc1 = _overlap(int(c0), size, cols)
-        crops[..., index, vr0:vr1, vc0:vc1] = frame[..., fr0:fr1, fc0:fc1]
+        crop = crops[..., index, :, :]
+        if (vr0, vr1, vc0, vc1) != (0, size, 0, size):  # partly off the frame
+            crop.zero_()
+        crop[..., vr0:vr1, vc0:vc1] = frame[..., fr0:fr1, fc0:fc1]
     return crops
 
 
