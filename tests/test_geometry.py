@@ -8,6 +8,7 @@ from svcode_core.physics.geometry import (
     assemble_window,
     context_shifts,
     context_views,
+    crops_at,
     extract_sub_views,
     field_radius,
     lens_pitch,
@@ -58,6 +59,20 @@ def test_out_of_frame_crops_are_zero(tiny_system):
     assert (origin < 0).all()
     assert views[0, : -origin[0]].abs().sum() == 0
     assert views[0, -origin[0]:, -origin[1]:].min() == 1
+
+
+def test_crops_are_slices_of_the_zero_padded_frame():
+    """Crops inside, partly outside and wholly outside the frame, cut into memory that
+    held other values just before: every pixel off the frame is 0, the rest the frame's."""
+    frame = torch.from_numpy(np.random.default_rng(0).random((2, 20, 30), dtype=np.float32))
+    corners = np.array([[3, 4], [-5, 2], [12, 25], [-8, -9], [40, 0], [0, -20]])
+    size, pad = 10, 50
+    padded = np.pad(frame.numpy(), ((0, 0), (pad, pad), (pad, pad)))
+    expected = np.stack([padded[:, r + pad : r + pad + size, c + pad : c + pad + size]
+                         for r, c in corners], axis=1)  # fmt: skip
+    del_me = torch.full((2, len(corners), size, size), float("nan"))
+    del del_me  # its memory is free for the crops
+    np.testing.assert_array_equal(crops_at(frame, corners, size).numpy(), expected)
 
 
 def test_wrong_frame_shape_raises(tiny_system):

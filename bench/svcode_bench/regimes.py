@@ -489,7 +489,7 @@ def regime_simulator(system: SystemConfig, regime: str, nominal: Simulator | Non
     if regime not in REGIMES:
         raise ValueError(f"unknown regime {regime!r}; choose from {', '.join(REGIMES)}")
     if regime == "matched":
-        return nominal or Simulator(system)
+        return Simulator(system) if nominal is None else nominal
     return Simulator(system, departures=Departures.named(REGIMES[regime], system))
 
 
