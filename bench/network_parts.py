@@ -97,8 +97,7 @@ def alternating_walls(runs: dict, rounds: int = ROUNDS) -> dict:
 
 def profile_parts(run) -> dict:
     """``run``'s operator time per part in one profiled call and its convolution and
-    product FLOPs (after a warm-up call)."""
-    run()
+    product FLOPs (``run`` warm: :func:`alternating_walls` has run it)."""
     with FlopCounterMode(display=False) as counter:
         run()
     with profile(activities=[ProfilerActivity.CPU]) as prof:

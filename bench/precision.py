@@ -30,7 +30,6 @@ from svcode_core.evaluation.metrics import psnr, ssim
 from svcode_core.methods.base import native_bf16
 from svcode_core.methods.build import build_reconstructor
 from svcode_core.methods.model_file import read_model_metadata, record_extra
-from svcode_core.physics.simulate import Simulator
 from svcode_core.pretrained import require_bundled_weights
 
 PRECISIONS = ("fp32", "bf16")
@@ -52,10 +51,9 @@ def main() -> None:
               "figures still hold")
     reconstructors = {p: build_reconstructor("svcode", system, weights, precision=p)
                       for p in PRECISIONS}
-    nominal = Simulator(system)
     rows = []
     for regime in regimes:
-        scenes = make_scenes(system, scene_names, regime_simulator(system, regime, nominal))
+        scenes = make_scenes(system, scene_names, regime_simulator(system, regime))
         per_scene = {p: {} for p in PRECISIONS}
         seconds = dict.fromkeys(PRECISIONS, 0.0)
         for scene in scenes:

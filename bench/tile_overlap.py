@@ -32,7 +32,6 @@ from svcode_core.evaluation.metrics import psnr, ssim
 from svcode_core.methods.build import build_reconstructor
 from svcode_core.methods.model_file import load_model, record_extra
 from svcode_core.methods.svcode import AUTO_TOLERANCE_DB, plan_tiles, tile_overlap
-from svcode_core.physics.simulate import Simulator
 
 #: overlaps tried below the radius (sub-view pixels; rounded up to the model's stride)
 CANDIDATES = (256, 128, 64)
@@ -58,10 +57,9 @@ def main() -> None:
     reconstructors = {o: build_reconstructor("svcode", system, args.weights, precision="fp32",
                                              tile_size=tile, stride=tile - o, batch_size=batch)
                       for o in overlaps}  # fmt: skip
-    nominal = Simulator(system)
     rows = []
     for regime in regimes:
-        scenes = make_scenes(system, scene_names, regime_simulator(system, regime, nominal))
+        scenes = make_scenes(system, scene_names, regime_simulator(system, regime))
         if not rows:  # masks made and kept, kernels chosen: timed as in a recording
             for reconstructor in reconstructors.values():
                 reconstructor.reconstruct(scenes[0].raw)
